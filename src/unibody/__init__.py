@@ -1,0 +1,1 @@
+"""unibody: one canonical body for every parametric human model."""
