@@ -1,0 +1,195 @@
+"""BodyLayer: identity parameters + 77 joint rotations -> posed mesh on the canonical topology.
+
+Data flows one way (paper 000 Fig. 2):
+identity params -> identity backend -> native rest mesh -> TopologyTransfer -> canonical rest
+mesh -> SkeletonTransfer -> rest joint transforms T_k; pose -> FK -> G_k; LBS with G_k T_k^-1.
+
+Pose convention (paper 001, compatible with py-soma-x): ``pose`` holds local rotations of
+joints 1..77 (Hips first; it carries the global orientation). By default they are
+T-pose-relative, R_abs,j = O_p(j)^T R_rel,j O_j with O the T-pose world orientations, so the
+zero pose is the T-pose; ``absolute=True`` takes R_abs,j directly. ``transl`` is the Hips
+world position (the origin when omitted). Units: metres; Y up; the body faces +Z.
+
+Differences from py-soma-x at the boundary: ``BodyOutput.joints`` includes Root (78 rows,
+Root at the origin); drop row 0 for the official (B, 77, 3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import torch
+from torch import nn
+
+from ._checks import check_finite, check_like, check_shape, check_tensor
+from .geometry.kinematics import forward_kinematics
+from .geometry.rotations import axis_angle_to_matrix, rot6d_to_matrix
+from .geometry.skinning import SkinLayout, lbs_sparse, skin_layout
+from .rig import NUM_POSED, Rig
+from .skeleton import SkeletonTransfer
+
+if TYPE_CHECKING:
+    from .topology import TopologyTransfer
+
+__all__ = ["BodyLayer", "BodyOutput", "PreparedIdentity"]
+
+
+@dataclass(frozen=True, slots=True)
+class PreparedIdentity:
+    """An identity fitted once, posed many times (``Bi`` is 1 or the pose batch).
+
+    Attributes:
+        rest_vertices: (Bi, V, 3) m, canonical rest mesh.
+        rest_rotations: (Bi, J, 3, 3) world rotations of the fitted joints at rest.
+        rest_joints: (Bi, J, 3) m, world positions of the fitted joints at rest.
+        offsets: (Bi, J, 3) m, each joint's position in its parent's rest frame.
+    """
+
+    rest_vertices: torch.Tensor
+    rest_rotations: torch.Tensor
+    rest_joints: torch.Tensor
+    offsets: torch.Tensor
+
+    @property
+    def batch_size(self) -> int:
+        return self.rest_vertices.shape[0]
+
+
+@dataclass(frozen=True, slots=True)
+class BodyOutput:
+    """A posed batch.
+
+    Attributes:
+        vertices: (B, V, 3) m, posed mesh, world frame.
+        joints: (B, J, 3) m, posed joint positions, Root included (row 0, at the origin).
+        transforms: (B, J, 4, 4) posed world transforms G_k of the joints.
+        rest_vertices: (B, V, 3) m, the canonical rest mesh of each item (may be a broadcast view).
+    """
+
+    vertices: torch.Tensor
+    joints: torch.Tensor
+    transforms: torch.Tensor
+    rest_vertices: torch.Tensor
+
+
+class BodyLayer(nn.Module):
+    """The unified body: pose any identity with the canonical 78-joint rig.
+
+    Args:
+        rig: the canonical rig.
+        identity: an identity backend (``params (B, K) -> native rest mesh``), or None to
+            pose canonical rest meshes given directly (:meth:`prepare_rest`).
+        topology: the transfer from the backend's native topology; None when the backend
+            already produces canonical meshes.
+    """
+
+    def __init__(self, rig: Rig, identity: nn.Module | None = None, topology: TopologyTransfer | None = None) -> None:
+        super().__init__()
+        self.rig_tree = rig.tree
+        self.joint_names = rig.joint_names
+        self.identity = identity
+        self.topology = topology
+        self.skeleton = SkeletonTransfer(rig)
+        parents = torch.tensor([max(p, 0) for p in rig.tree.parents])
+        self.register_buffer("parents", parents, persistent=False)
+        self.register_buffer("tpose_orient", rig.tpose_orient, persistent=False)
+        self.register_buffer("faces", rig.faces, persistent=False)
+        self.register_buffer("skin_weight", rig.skin_weight, persistent=False)
+        layout = skin_layout(rig.skin_vertex, rig.skin_joint, rig.num_vertices, rig.num_joints)
+        self._layout_fields = tuple(k for k, v in vars(layout).items() if isinstance(v, torch.Tensor))
+        for k in self._layout_fields:
+            self.register_buffer(f"_skin_{k}", getattr(layout, k), persistent=False)
+        self.num_vertices, self.num_joints = rig.num_vertices, rig.num_joints
+
+    @classmethod
+    def from_anny(cls, *, local_changes: str | tuple[str, ...] = "none", dtype: torch.dtype = torch.float32) -> BodyLayer:
+        """The canonical rig with Anny as identity backend (offline, from the ``anny`` package)."""
+        from .identity.anny import AnnyIdentity
+        from .topology import TopologyTransfer
+
+        identity = AnnyIdentity.create(local_changes=local_changes)
+        return cls(Rig.canonical(), identity, TopologyTransfer.from_anny()).to(dtype)
+
+    def _layout(self) -> SkinLayout:
+        fields = {k: getattr(self, f"_skin_{k}") for k in self._layout_fields}
+        return SkinLayout(**fields, num_vertices=self.num_vertices, num_joints=self.num_joints)
+
+    def prepare_rest(self, rest_vertices: torch.Tensor) -> PreparedIdentity:
+        """Fit the skeleton to canonical rest meshes (B, V, 3), metres."""
+        rot, pos = self.skeleton(rest_vertices)
+        rp_t = rot[:, self.parents].transpose(-1, -2)
+        offsets = (rp_t @ (pos - pos[:, self.parents])[..., None]).squeeze(-1)
+        return PreparedIdentity(rest_vertices, rot, pos, offsets)
+
+    def prepare_identity(self, params: torch.Tensor) -> PreparedIdentity:
+        """Run the identity backend, the topology transfer and the skeleton fit once.
+
+        Args:
+            params: (B, K) the backend's identity parameters (for Anny: 6 phenotypes in
+                [0, 1], then local changes).
+        """
+        if self.identity is None:
+            raise ValueError("params: this layer has no identity backend; use prepare_rest(vertices)")
+        rest = self.identity(params)
+        if self.topology is not None:
+            rest = self.topology(rest)
+        return self.prepare_rest(rest)
+
+    def _local_rotations(self, pose: torch.Tensor, absolute: bool) -> torch.Tensor:
+        """(B, 77, 3 | 3x3 | 6) -> absolute local rotations (B, J, 3, 3), Root = I."""
+        kind = check_shape(pose, f"B {NUM_POSED} 3", f"B {NUM_POSED} 3 3", f"B {NUM_POSED} 6", name="pose")
+        check_like(pose, self.tpose_orient, name="pose")
+        check_finite(pose, "pose")
+        rot = (axis_angle_to_matrix, lambda r: r, rot6d_to_matrix)[kind](pose)
+        if not absolute:
+            o = self.tpose_orient
+            rot = o[self.parents[1:]].transpose(-1, -2) @ rot @ o[1:]
+        eye = torch.eye(3, dtype=rot.dtype, device=rot.device).expand(rot.shape[0], 1, 3, 3)
+        return torch.cat([eye, rot], dim=1)
+
+    def pose(
+        self, prepared: PreparedIdentity, pose: torch.Tensor, *, transl: torch.Tensor | None = None, absolute: bool = False
+    ) -> BodyOutput:
+        """Pose a prepared identity.
+
+        Args:
+            prepared: from :meth:`prepare_identity` or :meth:`prepare_rest`; batch 1 or B.
+            pose: (B, 77, 3) axis-angle (radians), (B, 77, 3, 3) matrices or (B, 77, 6)
+                continuous 6D, local rotations of joints 1..77 (T-pose-relative unless
+                ``absolute``).
+            transl: (B, 3) m, Hips world position; None puts the Hips at the origin.
+            absolute: whether ``pose`` holds absolute local rotations.
+
+        Returns:
+            BodyOutput with B meshes.
+        """
+        if not isinstance(prepared, PreparedIdentity):
+            raise TypeError(f"prepared: expected a PreparedIdentity, got {type(prepared).__name__}")
+        check_tensor(pose, "pose")
+        b = pose.shape[0]
+        if prepared.batch_size not in (1, b):
+            raise ValueError(f"prepared: identity batch {prepared.batch_size} must be 1 or the pose batch {b}")
+        local_r = self._local_rotations(pose, absolute)
+        local_t = prepared.offsets.expand(b, -1, -1)
+        if transl is not None:
+            check_shape(transl, "B 3", name="transl", sizes={"B": b})
+            check_like(transl, self.tpose_orient, name="transl")
+            check_finite(transl, "transl")
+            local_t = torch.cat([local_t[:, :1], transl[:, None], local_t[:, 2:]], dim=1)
+        else:
+            local_t = torch.cat([local_t[:, :1], local_t.new_zeros(b, 1, 3), local_t[:, 2:]], dim=1)
+        g_rot, g_pos = forward_kinematics(self.rig_tree, local_r, local_t)
+        skin_rot = g_rot @ prepared.rest_rotations.transpose(-1, -2)
+        skin_t = g_pos - (skin_rot @ prepared.rest_joints[..., None]).squeeze(-1)
+        mats = torch.cat([skin_rot, skin_t[..., None]], dim=-1)
+        vertices = lbs_sparse(prepared.rest_vertices, mats, self.skin_weight, self._layout())
+        bottom = g_rot.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(b, self.num_joints, 1, 4)
+        transforms = torch.cat([torch.cat([g_rot, g_pos[..., None]], dim=-1), bottom], dim=-2)
+        return BodyOutput(vertices, g_pos, transforms, prepared.rest_vertices.expand(b, -1, -1))
+
+    def forward(
+        self, params: torch.Tensor, pose: torch.Tensor, *, transl: torch.Tensor | None = None, absolute: bool = False
+    ) -> BodyOutput:
+        """Identity parameters (B or 1, K) and pose (B, 77, ...) -> BodyOutput (see :meth:`pose`)."""
+        return self.pose(self.prepare_identity(params), pose, transl=transl, absolute=absolute)

@@ -1,0 +1,94 @@
+"""Forward kinematics over a joint tree, one batched step per tree level.
+
+Transforms are kept as a rotation (..., 3, 3) and a translation (..., 3) rather than 4x4
+matrices: the bottom row is never multiplied. A joint's world transform is its parent's
+world transform composed with its local one: R_w = R_w,p R_l, t_w = R_w,p t_l + t_w,p.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+import torch
+
+from ..rig import KinematicTree
+
+__all__ = ["forward_kinematics", "relative_to_parent", "compose", "invert"]
+
+
+@cache
+def _schedule(tree: KinematicTree) -> tuple[tuple[tuple[int, ...], tuple[int, ...]], ...]:
+    """Per level: (joints, slot of each joint's parent within the previous level)."""
+    steps = []
+    for depth, level in enumerate(tree.levels[1:], start=1):
+        slot = {j: i for i, j in enumerate(tree.levels[depth - 1])}
+        steps.append((level, tuple(slot[tree.parents[j]] for j in level)))
+    return tuple(steps)
+
+
+@cache
+def _joint_order(tree: KinematicTree) -> tuple[int, ...]:
+    """Position of each joint in the level-major concatenation."""
+    flat = [j for level in tree.levels for j in level]
+    inverse = [0] * len(flat)
+    for pos, j in enumerate(flat):
+        inverse[j] = pos
+    return tuple(inverse)
+
+
+def forward_kinematics(
+    tree: KinematicTree, rot: torch.Tensor, trans: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Compose local transforms into world transforms.
+
+    Args:
+        tree: the joint hierarchy; joint 0 is the root.
+        rot: (B, J, 3, 3) local rotations (the root's is its world rotation).
+        trans: (B, J, 3) local translations, in the parent's frame.
+
+    Returns:
+        ``(world_rot (B, J, 3, 3), world_trans (B, J, 3))``.
+    """
+    root = tree.levels[0]
+    r_levels = [rot[:, root]]
+    t_levels = [trans[:, root]]
+    for joints, slots in _schedule(tree):
+        idx = torch.tensor(joints, device=rot.device)
+        pslot = torch.tensor(slots, device=rot.device)
+        rp, tp = r_levels[-1][:, pslot], t_levels[-1][:, pslot]
+        r_levels.append(rp @ rot[:, idx])
+        t_levels.append((rp @ trans[:, idx, :, None]).squeeze(-1) + tp)
+    order = torch.tensor(_joint_order(tree), device=rot.device)
+    return torch.cat(r_levels, 1)[:, order], torch.cat(t_levels, 1)[:, order]
+
+
+def relative_to_parent(
+    tree: KinematicTree, rot: torch.Tensor, trans: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inverse of :func:`forward_kinematics`: world transforms to local ones.
+
+    Args:
+        rot: (B, J, 3, 3) world rotations; trans: (B, J, 3) world positions.
+
+    Returns:
+        ``(local_rot, local_trans)``; the root keeps its world transform.
+    """
+    parents = torch.tensor([max(p, 0) for p in tree.parents], device=rot.device)
+    rp_t = rot[:, parents].transpose(-1, -2)
+    local_r = rp_t @ rot
+    local_t = (rp_t @ (trans - trans[:, parents])[..., None]).squeeze(-1)
+    is_root = torch.tensor([p < 0 for p in tree.parents], device=rot.device)
+    local_r = torch.where(is_root[:, None, None], rot, local_r)
+    local_t = torch.where(is_root[:, None], trans, local_t)
+    return local_r, local_t
+
+
+def compose(r1: torch.Tensor, t1: torch.Tensor, r2: torch.Tensor, t2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(r1, t1) after (r2, t2): x -> r1 (r2 x + t2) + t1."""
+    return r1 @ r2, (r1 @ t2[..., None]).squeeze(-1) + t1
+
+
+def invert(r: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inverse of a rigid transform (r orthonormal)."""
+    rt = r.transpose(-1, -2)
+    return rt, -(rt @ t[..., None]).squeeze(-1)
