@@ -1,1 +1,27 @@
-"""unibody: one canonical body for every parametric human model."""
+"""unibody: one canonical mesh and 78-joint skeleton for any parametric human body model.
+
+Units are metres, Y is up and bodies face +Z. Poses are (B, 77, 3) axis-angle local
+rotations of joints 1..77, T-pose-relative by default (paper 001).
+"""
+
+from .body import BodyLayer, BodyOutput, PreparedIdentity
+from .identity import AnnyIdentity
+from .rig import JOINT_NAMES, NUM_JOINTS, NUM_POSED, KinematicTree, Rig, joint_index
+from .skeleton import SkeletonTransfer
+from .topology import TopologyTransfer
+
+__all__ = [
+    "AnnyIdentity",
+    "BodyLayer",
+    "BodyOutput",
+    "JOINT_NAMES",
+    "KinematicTree",
+    "NUM_JOINTS",
+    "NUM_POSED",
+    "PreparedIdentity",
+    "Rig",
+    "SkeletonTransfer",
+    "TopologyTransfer",
+    "joint_index",
+]
+__version__ = "0.1.0"

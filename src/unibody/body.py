@@ -26,7 +26,7 @@ from ._checks import check_finite, check_like, check_shape, check_tensor
 from .geometry.kinematics import forward_kinematics
 from .geometry.rotations import axis_angle_to_matrix, rot6d_to_matrix
 from .geometry.skinning import SkinLayout, lbs_sparse, skin_layout
-from .rig import NUM_POSED, Rig
+from .rig import Rig
 from .skeleton import SkeletonTransfer
 
 if TYPE_CHECKING:
@@ -137,8 +137,9 @@ class BodyLayer(nn.Module):
         return self.prepare_rest(rest)
 
     def _local_rotations(self, pose: torch.Tensor, absolute: bool) -> torch.Tensor:
-        """(B, 77, 3 | 3x3 | 6) -> absolute local rotations (B, J, 3, 3), Root = I."""
-        kind = check_shape(pose, f"B {NUM_POSED} 3", f"B {NUM_POSED} 3 3", f"B {NUM_POSED} 6", name="pose")
+        """(B, P, 3 | 3x3 | 6) -> absolute local rotations (B, J, 3, 3), Root = I."""
+        p = self.num_joints - 1
+        kind = check_shape(pose, f"B {p} 3", f"B {p} 3 3", f"B {p} 6", name="pose")
         check_like(pose, self.tpose_orient, name="pose")
         check_finite(pose, "pose")
         rot = (axis_angle_to_matrix, lambda r: r, rot6d_to_matrix)[kind](pose)

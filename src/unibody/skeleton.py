@@ -20,18 +20,11 @@ from torch import nn
 from ._checks import check_finite, check_like, check_shape
 from .geometry.procrustes import polar_svd
 from .geometry.rotations import shortest_arc
+from .geometry.sparse import crow_indices as _crow
+from .geometry.sparse import csr as _csr
 from .rig import Rig
 
 __all__ = ["SkeletonTransfer"]
-
-
-def _csr(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
-    return torch.sparse_csr_tensor(crow, col, val, shape, check_invariants=False)
-
-
-def _crow(rows: torch.Tensor, n: int) -> torch.Tensor:
-    counts = torch.bincount(rows, minlength=n)
-    return torch.cat([counts.new_zeros(1), counts.cumsum(0)])
 
 
 class SkeletonTransfer(nn.Module):

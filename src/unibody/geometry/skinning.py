@@ -12,13 +12,12 @@ to both the rest vertices and the transforms come from an explicit backward.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import torch
 
-# Our CSR use (constant structure, sparse @ dense) is the stable subset; the beta notice is noise.
-warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+from .sparse import crow_indices as _crow
+from .sparse import csr
 
 __all__ = ["SkinLayout", "skin_layout", "lbs_sparse", "lbs_dense"]
 
@@ -53,11 +52,6 @@ class SkinLayout:
     def to(self, device: torch.device) -> SkinLayout:
         fields = {k: getattr(self, k) for k in self.__dataclass_fields__}
         return SkinLayout(**{k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in fields.items()})
-
-
-def _crow(rows: torch.Tensor, n: int) -> torch.Tensor:
-    counts = torch.bincount(rows, minlength=n)
-    return torch.cat([counts.new_zeros(1), counts.cumsum(0)])
 
 
 def skin_layout(vertex: torch.Tensor, joint: torch.Tensor, num_vertices: int, num_joints: int) -> SkinLayout:
@@ -109,8 +103,7 @@ class _SparseSkin(torch.autograd.Function):
         x = None
         for r, sl in _groups(rest.shape[0], mats.shape[0]):
             if x is None or rest.shape[0] > 1:
-                x = torch.sparse_csr_tensor(layout.x_crow, layout.x_col, _x_values(rest[r], weight, layout), (v, 4 * j),
-                                            check_invariants=False)
+                x = csr(layout.x_crow, layout.x_col, _x_values(rest[r], weight, layout), (v, 4 * j))
             m = mats[sl]
             out[sl] = (x @ _stack(m)).view(v, m.shape[0], 3).transpose(0, 1)
         ctx.save_for_backward(rest, mats, weight)
@@ -128,12 +121,12 @@ class _SparseSkin(torch.autograd.Function):
             grad_mats = torch.empty_like(mats)
             for r, sl in _groups(rest.shape[0], mats.shape[0]):
                 vals = _x_values(rest[r], weight, layout)[layout.xt_perm]
-                xt = torch.sparse_csr_tensor(layout.xt_crow, layout.xt_col, vals, (4 * j, v), check_invariants=False)
+                xt = csr(layout.xt_crow, layout.xt_col, vals, (4 * j, v))
                 g = grad[sl].transpose(0, 1).reshape(v, -1)
                 grad_mats[sl] = _unstack(xt @ g, g.shape[1] // 3)
         if ctx.needs_input_grad[0]:
             # d v'_i / d v_i = sum_k w_ik R_k: blend the rotations with the sparse weights.
-            w = torch.sparse_csr_tensor(layout.w_crow, layout.joint, weight, (v, j), check_invariants=False)
+            w = csr(layout.w_crow, layout.joint, weight, (v, j))
             b = mats.shape[0]
             rot = mats[..., :3].permute(1, 0, 2, 3).reshape(j, 9 * b)
             blended = (w @ rot).view(v, b, 3, 3)

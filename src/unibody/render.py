@@ -1,0 +1,560 @@
+"""Offscreen software renderer for quick looks at bodies: numpy + Pillow only.
+
+Conventions: metres, Y up, bodies face +Z.  The ``"front"`` camera sits on +Z and
+looks toward -Z; ``"three_quarter"`` swings it 30 degrees about Y toward +X and
+raises it so that it looks 10 degrees down.  The camera is a pinhole with a
+30 degree vertical field of view, framed automatically around the meshes'
+bounding box.
+
+Pipeline (all vectorised):
+
+1. project vertices, cull back faces / degenerate / behind-camera triangles;
+2. z-pass: for blocks of triangles enumerate the pixels of each triangle's
+   bounding box (``np.repeat`` over box sizes; large triangles are cut into row
+   strips), keep those inside all three edge functions and scatter a 64-bit
+   key ``(quantised depth << 32) | face id`` into the z-buffer with
+   ``np.minimum.at`` -- the smallest key per pixel is the nearest fragment;
+3. deferred shading: for each covered pixel recompute barycentrics of the
+   winning face, interpolate vertex normals perspective-correctly and apply a
+   key light from the camera's upper left, a fill light, hemispheric ambient and
+   a faint specular term;
+4. an analytic ground plane (subtle checker, soft contact shadow, distance fog)
+   and a background gradient are composited through the same depth buffer;
+5. the image is rendered at ``supersample`` times the size and reduced with
+   Pillow's LANCZOS filter.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from PIL import Image, ImageFilter
+
+from .io.glb import MeshSpec, vertex_normals
+
+__all__ = ["Camera", "MeshSpec", "frame_camera", "project", "render_image", "render_png"]
+
+View = Literal["front", "three_quarter"]
+
+_FOV_Y = 30.0
+_MARGIN = 0.08
+_NEAR = 1e-3
+_BLOCK = 1 << 21  # candidate pixels per block
+_STRIP = 1 << 16  # bounding boxes larger than this are cut into row strips
+_EMPTY = np.iinfo(np.int64).max
+_DEPTH_LEVELS = (1 << 31) - 2
+_EPS = 1e-5  # edge-function slack in barycentric units: closes cracks on shared edges
+
+_BG_TOP = np.array([0.97, 0.975, 0.985])
+_BG_BOTTOM = np.array([0.80, 0.82, 0.86])
+_GROUND = np.array([0.90, 0.905, 0.91])
+
+
+@dataclass(frozen=True, slots=True)
+class Camera:
+    """A pinhole camera: position ``eye`` looking at ``target``, ``fov_y`` in degrees.
+
+    The image size is not part of the camera; the focal length in pixels is
+    ``(height / 2) / tan(fov_y / 2)`` for an image ``height`` pixels tall.
+    """
+
+    eye: tuple[float, float, float]
+    target: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov_y: float = _FOV_Y
+
+    def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Unit ``(right, up, forward)`` vectors in world coordinates."""
+        eye = np.asarray(self.eye, dtype=np.float64)
+        fwd = np.asarray(self.target, dtype=np.float64) - eye
+        norm = np.linalg.norm(fwd)
+        if not norm > 0:
+            raise ValueError("camera: eye and target coincide")
+        fwd /= norm
+        right = np.cross(fwd, np.asarray(self.up, dtype=np.float64))
+        rn = np.linalg.norm(right)
+        if not rn > 1e-12:
+            raise ValueError("camera: up is parallel to the viewing direction")
+        right /= rn
+        return right, np.cross(right, fwd), fwd
+
+    def focal_px(self, height: int) -> float:
+        """Focal length in pixels for an image ``height`` pixels tall."""
+        if not 0.0 < self.fov_y < 180.0:
+            raise ValueError(f"camera: fov_y must lie in (0, 180) degrees, got {self.fov_y}")
+        return 0.5 * height / math.tan(math.radians(self.fov_y) / 2)
+
+
+def project(camera: Camera, points: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Project world ``points`` ``(N, 3)`` to ``(N, 3)``: pixel x, pixel y, depth.
+
+    Pixel coordinates are continuous with the origin at the top-left corner of the
+    image (pixel ``(i, j)`` covers ``[i, i+1) x [j, j+1)``, its centre at
+    ``(i + 0.5, j + 0.5)``), x to the right, y down.  Depth is the distance along
+    the viewing direction; points with depth <= 0 get meaningless pixel values.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"points: expected shape (N, 3), got {p.shape}")
+    right, up, fwd = camera.basis()
+    rel = p - np.asarray(camera.eye, dtype=np.float64)
+    xc, yc, zc = rel @ right, rel @ up, rel @ fwd
+    f = camera.focal_px(height)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        px = 0.5 * width + f * xc / zc
+        py = 0.5 * height - f * yc / zc
+    return np.stack([px, py, zc], axis=1)
+
+
+def _view_direction(view: str) -> np.ndarray:
+    """Unit vector from the scene toward the camera."""
+    if view == "front":
+        return np.array([0.0, 0.0, 1.0])
+    if view == "three_quarter":
+        az, el = math.radians(30.0), math.radians(10.0)
+        return np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+    raise ValueError(f"view: expected 'front' or 'three_quarter', got {view!r}")
+
+
+def _fit_axis(a: np.ndarray, h: np.ndarray, tan_half: float) -> tuple[float, float]:
+    """Smallest distance D (and the matching lateral shift s) with every point inside.
+
+    Points are at lateral offset ``a`` and depth ``D - h`` from the camera; the
+    camera may shift laterally by ``s``: need ``|a - s| <= tan_half * (D - h)``.
+    """
+
+    def interval(d: float) -> tuple[float, float]:
+        reach = tan_half * (d - h)
+        return float(np.max(a - reach)), float(np.min(a + reach))
+
+    lo = float(np.max(h)) + 1e-6
+    hi = lo + 1.0
+    while interval(hi)[0] > interval(hi)[1]:
+        hi = lo + 2 * (hi - lo)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        s_lo, s_hi = interval(mid)
+        if s_lo <= s_hi:
+            hi = mid
+        else:
+            lo = mid
+    s_lo, s_hi = interval(hi)
+    return hi, 0.5 * (s_lo + s_hi)
+
+
+def frame_camera(
+    meshes: Sequence[MeshSpec], view: View = "three_quarter", width: int = 1600, height: int = 800
+) -> Camera:
+    """A camera looking from ``view`` that fits the meshes' bounding box with a margin."""
+    pts = _all_vertices(meshes)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    back = _view_direction(view)
+    fwd = -back
+    right = np.cross(fwd, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    centre = 0.5 * (lo + hi)
+    rel = corners - centre
+    a, b, h = rel @ right, rel @ up, rel @ back
+    tan_y = math.tan(math.radians(_FOV_Y) / 2) * (1 - _MARGIN)
+    tan_x = math.tan(math.radians(_FOV_Y) / 2) * width / height * (1 - _MARGIN)
+    dx, sx = _fit_axis(a, h, tan_x)
+    dy, sy = _fit_axis(b, h, tan_y)
+    dist = max(dx, dy, 1e-3)
+    # Re-centre along the looser axis for the final distance.
+    if dx < dist:
+        sx = 0.5 * (np.max(a - tan_x * (dist - h)) + np.min(a + tan_x * (dist - h)))
+    if dy < dist:
+        sy = 0.5 * (np.max(b - tan_y * (dist - h)) + np.min(b + tan_y * (dist - h)))
+    target = centre + sx * right + sy * up
+    eye = target + dist * back
+    return Camera(tuple(float(x) for x in eye), tuple(float(x) for x in target), (0.0, 1.0, 0.0), _FOV_Y)
+
+
+def _check_meshes(meshes: Sequence[MeshSpec]) -> list[MeshSpec]:
+    meshes = list(meshes)
+    if not meshes:
+        raise ValueError("meshes: expected at least one MeshSpec, got an empty sequence")
+    for i, m in enumerate(meshes):
+        if not isinstance(m, MeshSpec):
+            raise ValueError(f"meshes[{i}]: expected a MeshSpec, got {type(m).__name__}")
+    if sum(len(m.vertices) for m in meshes) == 0:
+        raise ValueError("meshes: all meshes are empty (no vertices)")
+    return meshes
+
+
+def _all_vertices(meshes: Sequence[MeshSpec]) -> np.ndarray:
+    meshes = _check_meshes(meshes)
+    return np.concatenate([m.vertices for m in meshes])
+
+
+# ----------------------------------------------------------------------------- rasterisation
+
+
+@dataclass(slots=True)
+class _Setup:
+    """Per-face screen-space data of the triangles that survived culling."""
+
+    fid: np.ndarray  # (T,) global face index
+    x0: np.ndarray  # (T,) int bbox
+    y0: np.ndarray
+    bw: np.ndarray
+    bh: np.ndarray
+    ox: np.ndarray  # (T,) bbox pixel-centre origin relative to vertex 2, float64
+    oy: np.ndarray
+    coef: np.ndarray  # (T, 3, 3) rows b0, b1, 1/z as (A, B, C): v = A*dx + B*dy + C at (x2, y2)
+
+
+def _setup(scr: np.ndarray, faces: np.ndarray, width: int, height: int, cull: bool) -> _Setup:
+    x, y, z = scr[:, 0], scr[:, 1], scr[:, 2]
+    i0, i1, i2 = faces[:, 0], faces[:, 1], faces[:, 2]
+    zmin = np.minimum(np.minimum(z[i0], z[i1]), z[i2])
+    keep = zmin > _NEAR
+    x0, x1, x2 = x[i0], x[i1], x[i2]
+    y0, y1, y2 = y[i0], y[i1], y[i2]
+    with np.errstate(invalid="ignore", over="ignore"):
+        det = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
+        # In image space (y down) a triangle that is counter-clockwise as seen by
+        # the camera has det < 0.
+        keep &= (det < -1e-12) if cull else (np.abs(det) > 1e-12)
+        bx0 = np.ceil(np.minimum(np.minimum(x0, x1), x2) - 0.5)
+        bx1 = np.floor(np.maximum(np.maximum(x0, x1), x2) - 0.5)
+        by0 = np.ceil(np.minimum(np.minimum(y0, y1), y2) - 0.5)
+        by1 = np.floor(np.maximum(np.maximum(y0, y1), y2) - 0.5)
+        keep &= (bx1 >= 0) & (by1 >= 0) & (bx0 <= width - 1) & (by0 <= height - 1) & (bx1 >= bx0) & (by1 >= by0)
+    idx = np.flatnonzero(keep)
+    bx0 = np.clip(bx0[idx], 0, width - 1).astype(np.int64)
+    bx1 = np.clip(bx1[idx], 0, width - 1).astype(np.int64)
+    by0 = np.clip(by0[idx], 0, height - 1).astype(np.int64)
+    by1 = np.clip(by1[idx], 0, height - 1).astype(np.int64)
+    x0, x1, x2, y0, y1, y2, det = (a[idx] for a in (x0, x1, x2, y0, y1, y2, det))
+    iz = 1.0 / z
+    iz0, iz1, iz2 = iz[i0[idx]], iz[i1[idx]], iz[i2[idx]]
+    a0, b0 = (y1 - y2) / det, (x2 - x1) / det
+    a1, b1 = (y2 - y0) / det, (x0 - x2) / det
+    # At vertex 2: b0 = b1 = 0, 1/z = iz2.
+    az = a0 * (iz0 - iz2) + a1 * (iz1 - iz2)
+    bz = b0 * (iz0 - iz2) + b1 * (iz1 - iz2)
+    coef = np.empty((len(idx), 3, 3))
+    coef[:, 0] = np.stack([a0, b0, np.zeros_like(a0)], axis=1)
+    coef[:, 1] = np.stack([a1, b1, np.zeros_like(a1)], axis=1)
+    coef[:, 2] = np.stack([az, bz, iz2], axis=1)
+    return _Setup(
+        fid=idx,
+        x0=bx0,
+        y0=by0,
+        bw=bx1 - bx0 + 1,
+        bh=by1 - by0 + 1,
+        ox=bx0 + 0.5 - x2,
+        oy=by0 + 0.5 - y2,
+        coef=coef,
+    )
+
+
+def _work_items(s: _Setup) -> tuple[np.ndarray, ...]:
+    """Cut big bounding boxes into row strips; returns per-item (tri, row0, rows)."""
+    rows_per = np.maximum(1, _STRIP // s.bw)
+    nstrip = -(-s.bh // rows_per)
+    tri = np.repeat(np.arange(len(s.bw)), nstrip)
+    first = np.cumsum(nstrip) - nstrip
+    k = np.arange(len(tri)) - np.repeat(first, nstrip)
+    row0 = k * rows_per[tri]
+    rows = np.minimum(rows_per[tri], s.bh[tri] - row0)
+    return tri, row0, rows
+
+
+def _zpass(s: _Setup, width: int, height: int, iz_lo: float, iz_hi: float) -> np.ndarray:
+    """Z-buffer of ``(quantised depth << 32) | face id`` keys, ``_EMPTY`` where uncovered."""
+    zbuf = np.full(width * height, _EMPTY, dtype=np.int64)
+    if len(s.fid) == 0:
+        return zbuf
+    tri, row0, rows = _work_items(s)
+    n = s.bw[tri] * rows
+    ends = np.cumsum(n)
+    scale = _DEPTH_LEVELS / max(iz_hi - iz_lo, 1e-30)
+    # Per-item constants: barycentrics and 1/z at the item's first pixel centre.
+    ox = s.ox[tri]
+    oy = s.oy[tri] + row0
+    c = s.coef[tri]
+    base = c[:, :, 0] * ox[:, None] + c[:, :, 1] * oy[:, None] + c[:, :, 2]
+    # 1/z is quantised relative to iz_hi (nearest): key depth = (iz_hi - 1/z) * scale.
+    base[:, 2] = (iz_hi - base[:, 2]) * scale
+    slope_x = c[:, :, 0].copy()
+    slope_y = c[:, :, 1].copy()
+    slope_x[:, 2] *= -scale
+    slope_y[:, 2] *= -scale
+    base32 = base.astype(np.float32)
+    sx32 = slope_x.astype(np.float32)
+    sy32 = slope_y.astype(np.float32)
+    start_pix = (s.y0[tri] + row0) * width + s.x0[tri]
+    fid = s.fid[tri]
+    bw = s.bw[tri]
+
+    lo_item = 0
+    while lo_item < len(tri):
+        target = (ends[lo_item - 1] if lo_item else 0) + _BLOCK
+        hi_item = max(lo_item + 1, int(np.searchsorted(ends, target, side="right")))
+        sl = slice(lo_item, hi_item)
+        cnt = n[sl]
+        total = int(cnt.sum())
+        local = np.repeat(np.arange(hi_item - lo_item, dtype=np.int32), cnt)
+        first = (np.cumsum(cnt) - cnt).astype(np.int32)
+        k = np.arange(total, dtype=np.int32) - first[local]
+        w = bw[sl].astype(np.int32)[local]
+        dy = k // w
+        dx = k - dy * w
+        dxf = dx.astype(np.float32)
+        dyf = dy.astype(np.float32)
+        b = base32[sl][local]
+        gx = sx32[sl][local]
+        gy = sy32[sl][local]
+        l0 = b[:, 0] + gx[:, 0] * dxf + gy[:, 0] * dyf
+        l1 = b[:, 1] + gx[:, 1] * dxf + gy[:, 1] * dyf
+        inside = (l0 >= -_EPS) & (l1 >= -_EPS) & (l0 + l1 <= 1 + _EPS)
+        sel = np.flatnonzero(inside)
+        local = local[sel]
+        dx = dx[sel]
+        dy = dy[sel]
+        q = b[sel, 2] + gx[sel, 2] * dxf[sel] + gy[sel, 2] * dyf[sel]
+        q = np.clip(q, 0, _DEPTH_LEVELS).astype(np.int64)
+        key = (q << 32) | fid[sl][local]
+        pix = start_pix[sl][local] + dy.astype(np.int64) * width + dx
+        np.minimum.at(zbuf, pix, key)
+        lo_item = hi_item
+    return zbuf
+
+
+# ----------------------------------------------------------------------------- shading
+
+
+def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    return np.power(np.clip(c, 0, 1), 2.2)
+
+
+def _linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    return np.power(np.clip(c, 0, 1), 1 / 2.2)
+
+
+def _contact_shadow(meshes: Sequence[MeshSpec], ground_y: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """A soft darkening map on the ground: ``(map (Nz, Nx) in [0, 1], origin (x, z), cell)``."""
+    pts = np.concatenate([m.vertices for m in meshes if len(m.vertices)])
+    height = pts[:, 1] - ground_y
+    pts = pts[height > -0.05]
+    height = height[height > -0.05]
+    cell = 0.01
+    pad = 0.6
+    lo = pts[:, [0, 2]].min(axis=0) - pad
+    hi = pts[:, [0, 2]].max(axis=0) + pad
+    nx, nz = (np.ceil((hi - lo) / cell).astype(int) + 1).tolist()
+    if nx * nz > 4_000_000:  # very large scenes: coarser grid
+        cell *= math.sqrt(nx * nz / 4_000_000)
+        nx, nz = (np.ceil((hi - lo) / cell).astype(int) + 1).tolist()
+    ix = ((pts[:, 0] - lo[0]) / cell).astype(int)
+    iz = ((pts[:, 2] - lo[1]) / cell).astype(int)
+    flat = iz * nx + ix
+
+    def blurred(weights: np.ndarray, sigma_m: float) -> np.ndarray:
+        occ = np.zeros(nx * nz)
+        np.maximum.at(occ, flat, weights)
+        img = Image.fromarray((occ.reshape(nz, nx) * 255).astype(np.uint8), mode="L")
+        img = img.filter(ImageFilter.GaussianBlur(radius=max(sigma_m / cell, 0.5)))
+        return np.asarray(img, dtype=np.float64) / 255
+
+    # Broad occlusion under the whole body, stronger for low parts; tight contact near the floor.
+    broad = blurred(np.exp(-np.maximum(height, 0) / 0.6), 0.08)
+    contact = blurred((height < 0.04).astype(np.float64), 0.015)
+    shadow = np.clip(0.45 * broad + 0.45 * contact, 0, 0.75)
+    return shadow, lo, cell
+
+
+def render_image(
+    meshes: Sequence[MeshSpec],
+    *,
+    width: int = 1600,
+    height: int = 800,
+    view: View = "three_quarter",
+    ground_y: float | None = 0.0,
+    camera: Camera | None = None,
+    supersample: int = 2,
+    cull_backfaces: bool = True,
+) -> np.ndarray:
+    """Render ``meshes`` to an ``(height, width, 3)`` uint8 RGB image.
+
+    ``camera`` overrides the automatic framing chosen by ``view``.  ``ground_y``
+    places a ground plane at that height (``None``: no ground).  ``supersample``
+    renders at that many times the size and downsamples with LANCZOS
+    (``1``: no anti-aliasing).
+    """
+    meshes = _check_meshes(meshes)
+    if int(width) != width or width < 1 or int(height) != height or height < 1:
+        raise ValueError(f"width, height: expected positive integers, got {width}, {height}")
+    if int(supersample) != supersample or not 1 <= supersample <= 8:
+        raise ValueError(f"supersample: expected an integer in [1, 8], got {supersample}")
+    if ground_y is not None and not math.isfinite(ground_y):
+        raise ValueError(f"ground_y: expected a finite float or None, got {ground_y}")
+    width, height, supersample = int(width), int(height), int(supersample)
+    if camera is None:
+        camera = frame_camera(meshes, view, width, height)
+    elif not isinstance(camera, Camera):
+        raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
+    W, H = width * supersample, height * supersample
+
+    # Scene arrays.
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes])
+    verts = np.concatenate([m.vertices for m in meshes])
+    faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets[:-1])]) if meshes else np.zeros((0, 3))
+    faces = faces.astype(np.int64).reshape(-1, 3)
+    face_mesh = np.repeat(np.arange(len(meshes)), [len(m.faces) for m in meshes])
+    normals = np.concatenate([vertex_normals(m.vertices, m.faces) for m in meshes])
+    colors = _srgb_to_linear(np.array([m.color for m in meshes], dtype=np.float64))
+
+    right, up, fwd = camera.basis()
+    eye = np.asarray(camera.eye, dtype=np.float64)
+    scr = project(camera, verts, W, H)
+    s = _setup(scr, faces, W, H, cull_backfaces)
+
+    depth = np.full(W * H, np.inf)
+    img = np.empty((W * H, 3))
+    covered = np.zeros(W * H, dtype=bool)
+    if len(s.fid):
+        zs = scr[faces[s.fid], 2]
+        iz_lo, iz_hi = float(1 / zs.max()), float(1 / zs.min())
+        zbuf = _zpass(s, W, H, iz_lo, iz_hi)
+        pix = np.flatnonzero(zbuf != _EMPTY)
+        covered[pix] = True
+        gface = (zbuf[pix] & 0xFFFFFFFF).astype(np.int64)  # global face id
+        f = faces[gface]
+        px = (pix % W) + 0.5
+        py = (pix // W) + 0.5
+        dx = px - scr[f[:, 2], 0]
+        dy = py - scr[f[:, 2], 1]
+        # Recompute barycentrics (float64) of the winning face at each pixel.
+        sid = np.searchsorted(s.fid, gface)
+        c = s.coef[sid]
+        l0 = c[:, 0, 0] * dx + c[:, 0, 1] * dy
+        l1 = c[:, 1, 0] * dx + c[:, 1, 1] * dy
+        l0 = np.clip(l0, 0, 1)
+        l1 = np.clip(l1, 0, 1 - l0)
+        l2 = 1 - l0 - l1
+        iz = 1 / scr[f, 2]
+        wts = np.stack([l0, l1, l2], axis=1) * iz
+        izp = wts.sum(axis=1)
+        wts /= izp[:, None]
+        depth[pix] = 1 / izp
+        n = np.einsum("pk,pkd->pd", wts, normals[f])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        # View vector (surface -> eye) and lights defined relative to the camera.
+        pos = np.einsum("pk,pkd->pd", wts, verts[f])
+        vdir = eye - pos
+        vdir /= np.linalg.norm(vdir, axis=1, keepdims=True)
+        if not cull_backfaces:
+            flip = np.einsum("pd,pd->p", n, vdir) < 0
+            n[flip] *= -1
+        key = -0.55 * right + 0.75 * up - 0.55 * fwd
+        key /= np.linalg.norm(key)
+        fill = 0.7 * right + 0.05 * up - 0.7 * fwd
+        fill /= np.linalg.norm(fill)
+        ndl = np.clip(n @ key, 0, None)
+        ndf = np.clip(n @ fill, 0, None)
+        hemi = 0.5 + 0.5 * n[:, 1]  # 1 facing the sky, 0 facing the ground
+        ambient = 0.10 + 0.14 * hemi
+        half = key + vdir
+        half /= np.linalg.norm(half, axis=1, keepdims=True)
+        spec = 0.06 * np.clip(np.einsum("pd,pd->p", n, half), 0, 1) ** 24 * (ndl > 0)
+        # Gentle rim to separate silhouettes from the background.
+        rim = 0.10 * (1 - np.clip(np.einsum("pd,pd->p", n, vdir), 0, 1)) ** 3
+        light = ambient + 0.85 * ndl + 0.22 * ndf + rim
+        img[pix] = colors[face_mesh[gface]] * light[:, None] + spec[:, None]
+
+    # Background gradient (linear space).
+    t_rows = np.linspace(0, 1, H)[:, None]
+    bg_rows = _srgb_to_linear(_BG_TOP * (1 - t_rows) + _BG_BOTTOM * t_rows)  # (H, 3)
+    bg = np.repeat(bg_rows, W, axis=0)
+    img[~covered] = bg[~covered]
+
+    if ground_y is not None and eye[1] > ground_y:
+        _ground(img, depth, camera, W, H, ground_y, meshes, bg)
+
+    out = (_linear_to_srgb(img.reshape(H, W, 3)) * 255 + 0.5).astype(np.uint8)
+    if supersample > 1:
+        out = np.asarray(Image.fromarray(out, mode="RGB").resize((width, height), Image.Resampling.LANCZOS))
+    return out
+
+
+def _ground(
+    img: np.ndarray,
+    depth: np.ndarray,
+    camera: Camera,
+    W: int,
+    H: int,
+    ground_y: float,
+    meshes: Sequence[MeshSpec],
+    bg: np.ndarray,
+) -> None:
+    """Composite the ground plane in place wherever it is nearer than the meshes."""
+    right, up, fwd = camera.basis()
+    eye = np.asarray(camera.eye, dtype=np.float64)
+    f = camera.focal_px(H)
+    # Ray per pixel: eye + t * (fwd + xn * right + yn * up), t = depth along fwd.
+    yn = (np.arange(H) + 0.5 - 0.5 * H) / -f
+    xn = (np.arange(W) + 0.5 - 0.5 * W) / f
+    dir_y = fwd[1] + xn[None, :] * right[1] + yn[:, None] * up[1]  # (H, W)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (ground_y - eye[1]) / dir_y
+    hit = (dir_y < 0) & (t < depth.reshape(H, W))
+    pixel = np.flatnonzero(hit.ravel())
+    if len(pixel) == 0:
+        return
+    tt = t.ravel()[pixel]
+    px, py = pixel % W, pixel // W
+    dd = fwd[None, :] + xn[px, None] * right[None, :] + yn[py, None] * up[None, :]
+    gx = eye[0] + tt * dd[:, 0]
+    gz = eye[2] + tt * dd[:, 2]
+    # Subtle checker, 0.5 m tiles, faded with distance to avoid moire.
+    tile = 0.5
+    checker = ((np.floor(gx / tile) + np.floor(gz / tile)) % 2) * 2 - 1
+    scene_dist = np.linalg.norm(eye - np.asarray(camera.target, dtype=np.float64))
+    fade = np.exp(-((tt / (2.0 * scene_dist)) ** 2))
+    base = _srgb_to_linear(_GROUND)[None, :] * (1 + 0.035 * checker * fade)[:, None]
+    # Contact shadow.
+    shadow, origin, cell = _contact_shadow(meshes, ground_y)
+    sx = np.clip(((gx - origin[0]) / cell).astype(int), 0, shadow.shape[1] - 1)
+    sz = np.clip(((gz - origin[1]) / cell).astype(int), 0, shadow.shape[0] - 1)
+    inside = (gx >= origin[0]) & (gz >= origin[1]) & (sx < shadow.shape[1] - 1) & (sz < shadow.shape[0] - 1)
+    dark = np.where(inside, shadow[sz, sx], 0.0)
+    col = base * (1 - dark)[:, None]
+    # Fog toward the background colour with distance.
+    fog = 1 - np.exp(-((tt / (3.5 * scene_dist)) ** 2))
+    col = col * (1 - fog)[:, None] + bg[pixel] * fog[:, None]
+    img[pixel] = col
+    depth[pixel] = tt
+
+
+def render_png(
+    path: str | os.PathLike[str],
+    meshes: Sequence[MeshSpec],
+    *,
+    width: int = 1600,
+    height: int = 800,
+    view: View = "three_quarter",
+    ground_y: float | None = 0.0,
+    camera: Camera | None = None,
+    supersample: int = 2,
+) -> None:
+    """Render ``meshes`` (see :func:`render_image`) and save the result as a PNG at ``path``."""
+    image = render_image(
+        meshes,
+        width=width,
+        height=height,
+        view=view,
+        ground_y=ground_y,
+        camera=camera,
+        supersample=supersample,
+    )
+    Image.fromarray(image, mode="RGB").save(os.fspath(path), format="PNG")

@@ -1,0 +1,89 @@
+"""Shared fixtures: a tiny synthetic rig for exhaustive checks, the real canonical layer once."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from unibody.rig import Rig
+
+TOL = {torch.float32: 1e-5, torch.float64: 1e-10}
+
+
+def chain_rig(num_joints: int = 5, rings: int = 4, per_ring: int = 6, seed: int = 0) -> Rig:
+    """A Root + chain of joints along +Y wrapped in a tube mesh with smooth random weights.
+
+    Each joint's RBF row averages the ring of vertices around it, so it reproduces the bind
+    joints exactly; bind rotations are random so that nothing relies on identity frames.
+    """
+    rng = np.random.default_rng(seed)
+    parents = [-1] + list(range(num_joints - 1))
+    heights = np.arange(num_joints, dtype=np.float64) * 0.2
+    heights[0] = heights[1] = 0.0
+    verts, faces = [], []
+    n_rings = (num_joints - 1) * rings
+    for r in range(n_rings):
+        y = 0.2 * r / rings
+        for s in range(per_ring):
+            a = 2 * np.pi * s / per_ring
+            verts.append([0.05 * np.cos(a), y, 0.05 * np.sin(a)])
+    for r in range(n_rings - 1):
+        for s in range(per_ring):
+            a, b = r * per_ring + s, r * per_ring + (s + 1) % per_ring
+            faces += [[a, b + per_ring, b], [a, a + per_ring, b + per_ring]]
+    verts = np.asarray(verts)
+    joints = np.stack([np.zeros(num_joints), heights, np.zeros(num_joints)], 1)
+    d = np.abs(verts[:, 1:2] - joints[None, 1:, 1])
+    w = np.exp(-((d / 0.12) ** 2)) * (d < 0.25)
+    w = np.concatenate([np.zeros((len(verts), 1)), w], 1)
+    w /= w.sum(1, keepdims=True)
+    sv, sj = np.nonzero(w)
+    rbf = np.zeros((num_joints, len(verts)))
+    for j in range(1, num_joints):
+        ring = np.argsort(np.abs(verts[:, 1] - heights[j]))[:per_ring]
+        rbf[j, ring] = 1.0 / per_ring
+    rj, rv = np.nonzero(rbf)
+    q = rng.normal(size=(num_joints, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    x, y, z, s = q.T
+    rot = np.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - s * z), 2 * (x * z + s * y),
+        2 * (x * y + s * z), 1 - 2 * (x * x + z * z), 2 * (y * z - s * x),
+        2 * (x * z - s * y), 2 * (y * z + s * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
+    rot[0] = np.eye(3)
+    bind = np.tile(np.eye(4), (num_joints, 1, 1))
+    bind[:, :3, :3], bind[:, :3, 3] = rot, joints
+    tpose = rot.copy()
+    tpose[1:] = np.eye(3)
+    names = ["Root"] + [f"J{i}" for i in range(1, num_joints)]
+    return Rig.from_arrays({
+        "joint_names": np.asarray(names), "parents": np.asarray(parents),
+        "bind_vertices": verts, "faces": np.asarray(faces, dtype=np.int64),
+        "skin_vertex": sv, "skin_joint": sj, "skin_weight": w[sv, sj],
+        "rbf_joint": rj, "rbf_vertex": rv, "rbf_weight": rbf[rj, rv],
+        "bind_transforms": bind, "tpose_orient": tpose,
+    })
+
+
+@pytest.fixture(scope="session")
+def small_rig() -> Rig:
+    return chain_rig()
+
+
+@pytest.fixture(scope="session")
+def rig() -> Rig:
+    return Rig.canonical()
+
+
+@pytest.fixture(scope="session")
+def anny_layer64():
+    """The real layer (canonical rig + Anny), float64, built once per session."""
+    from unibody import BodyLayer
+
+    return BodyLayer.from_anny(dtype=torch.float64)
+
+
+@pytest.fixture(params=[torch.float32, torch.float64], ids=["f32", "f64"])
+def dtype(request) -> torch.dtype:
+    return request.param
