@@ -23,9 +23,9 @@ DEMO_COLORS = ((0.85, 0.55, 0.45), (0.45, 0.6, 0.85), (0.95, 0.75, 0.35), (0.6, 
 # the body's left on +X).
 DEMO_POSE = {
     "LeftArm": (0.0, 0.0, -1.2),
-    "LeftForeArm": (0.0, -0.5, 0.0),
-    "RightArm": (0.0, 0.3, 1.9),
-    "RightForeArm": (0.0, 0.0, 1.2),
+    "LeftForeArm": (0.0, -1.0, 0.0),
+    "RightArm": (0.0, 0.0, -0.25),
+    "RightForeArm": (0.0, 0.0, -1.5),
     "LeftLeg": (-0.45, 0.0, 0.0),
     "LeftShin": (0.6, 0.0, 0.0),
     "RightLeg": (0.3, 0.0, 0.0),
