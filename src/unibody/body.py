@@ -144,7 +144,7 @@ class BodyLayer(nn.Module):
         check_finite(pose, "pose")
         rot = (axis_angle_to_matrix, lambda r: r, rot6d_to_matrix)[kind](pose)
         if not absolute:
-            o = self.tpose_orient
+            o = self.tpose_orient  # R_abs,j = O_p(j)^T R_rel,j O_j
             rot = o[self.parents[1:]].transpose(-1, -2) @ rot @ o[1:]
         eye = torch.eye(3, dtype=rot.dtype, device=rot.device).expand(rot.shape[0], 1, 3, 3)
         return torch.cat([eye, rot], dim=1)
@@ -172,22 +172,43 @@ class BodyLayer(nn.Module):
         if prepared.batch_size not in (1, b):
             raise ValueError(f"prepared: identity batch {prepared.batch_size} must be 1 or the pose batch {b}")
         local_r = self._local_rotations(pose, absolute)
-        local_t = prepared.offsets.expand(b, -1, -1)
         if transl is not None:
             check_shape(transl, "B 3", name="transl", sizes={"B": b})
             check_like(transl, self.tpose_orient, name="transl")
             check_finite(transl, "transl")
-            local_t = torch.cat([local_t[:, :1], transl[:, None], local_t[:, 2:]], dim=1)
         else:
-            local_t = torch.cat([local_t[:, :1], local_t.new_zeros(b, 1, 3), local_t[:, 2:]], dim=1)
-        g_rot, g_pos = forward_kinematics(self.rig_tree, local_r, local_t)
-        skin_rot = g_rot @ prepared.rest_rotations.transpose(-1, -2)
-        skin_t = g_pos - (skin_rot @ prepared.rest_joints[..., None]).squeeze(-1)
-        mats = torch.cat([skin_rot, skin_t[..., None]], dim=-1)
-        vertices = lbs_sparse(prepared.rest_vertices, mats, self.skin_weight, self._layout())
+            transl = local_r.new_zeros(b, 3)
+        g_rot, g_pos, vertices = self.skin_local(prepared, local_r, transl)
         bottom = g_rot.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(b, self.num_joints, 1, 4)
         transforms = torch.cat([torch.cat([g_rot, g_pos[..., None]], dim=-1), bottom], dim=-2)
         return BodyOutput(vertices, g_pos, transforms, prepared.rest_vertices.expand(b, -1, -1))
+
+    def skin_local(
+        self, prepared: PreparedIdentity, local_rot: torch.Tensor, transl: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """FK + LBS from absolute local rotations, without input checks (for solvers).
+
+        Args:
+            prepared: the identity (batch 1 or B).
+            local_rot: (B, J, 3, 3) absolute local rotations, Root included (row 0).
+            transl: (B, 3) m, Hips world position.
+
+        Returns:
+            ``(world_rot (B, J, 3, 3), world_pos (B, J, 3), vertices (B, V, 3))``.
+        """
+        b = local_rot.shape[0]
+        local_t = prepared.offsets.expand(b, -1, -1)
+        local_t = torch.cat([local_t[:, :1], transl[:, None], local_t[:, 2:]], dim=1)
+        g_rot, g_pos = forward_kinematics(self.rig_tree, local_rot, local_t)
+        skin_rot = g_rot @ prepared.rest_rotations.transpose(-1, -2)
+        skin_t = g_pos - (skin_rot @ prepared.rest_joints[..., None]).squeeze(-1)
+        mats = torch.cat([skin_rot, skin_t[..., None]], dim=-1)
+        return g_rot, g_pos, lbs_sparse(prepared.rest_vertices, mats, self.skin_weight, self._layout())
+
+    def to_relative(self, local_rot: torch.Tensor) -> torch.Tensor:
+        """Absolute local rotations (B, 77, 3, 3) -> T-pose-relative: O_p R_abs O_j^T (paper 001)."""
+        o = self.tpose_orient
+        return o[self.parents[1:]] @ local_rot @ o[1:].transpose(-1, -2)
 
     def forward(
         self, params: torch.Tensor, pose: torch.Tensor, *, transl: torch.Tensor | None = None, absolute: bool = False

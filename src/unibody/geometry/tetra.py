@@ -114,7 +114,7 @@ def closest_triangles(
     no other triangle's bound is below the best exact distance; rows that fail are
     retried with 4x as many candidates, up to all triangles, so the answer is
     always exact. Returns ``(face_index (N,) long, closest point (N, 3), distance (N,))``.
-    Not differentiable (indices are the point); use the returned index instead.
+    Runs without autograd: it is a precomputation whose useful output is the index.
     """
     sizes: dict[str, int] = {}
     check_shape(points, "N 3", name="points", sizes=sizes)

@@ -1,0 +1,319 @@
+"""Pose inversion: posed meshes -> 77 joint rotations and root translation (paper 000 §3.6).
+
+Three solvers, chosen explicitly by :class:`InversionConfig` (never inferred):
+
+``"skeleton"``  SkeletonTransfer on the posed mesh: the fitted world frames are the posed
+                joint frames, so local rotations are R_abs,k = F_p^T F_k. One pass, no iteration.
+``"analytic"``  hierarchical inverse LBS from that start, parent to child, one tree level at a
+                time. For joint k, every other joint's contribution is held at the current
+                estimate and subtracted, which leaves w_ik R_k a_ik + (residual) with
+                a_ik = R_rest,k^T (v_i - j_rest,k); R_k is the Procrustes polar factor of
+                H_k = sum_i w_ik e_i a_ik^T + R_k,cur sum_i w_ik^2 a_ik a_ik^T (e: residual),
+                orthogonalised by Newton-Schulz (eq. 8) or, for the ablation, SVD.
+                Schedule: ``body_passes`` over body joints, then ``full_passes`` over all.
+``"autograd"``  continuous 6D rotations and the translation optimised with Adam through
+                FK + LBS with per-region vertex weights, started from ``init``.
+
+Input meshes may be on the canonical topology or on the layer's identity topology (Anny's
+native mesh), which is transferred first. Joints that skin no vertex (end joints, eyes) are
+unobservable and returned with zero (T-pose-relative) rotation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Literal, get_args
+
+import torch
+from torch import nn
+
+from ._checks import check_finite, check_like, check_shape
+from .body import BodyLayer, PreparedIdentity
+from .geometry.procrustes import newton_schulz, polar_svd
+from .geometry.rotations import matrix_to_axis_angle, matrix_to_rot6d, rot6d_to_matrix
+from .regions import REGIONS, joint_regions
+
+__all__ = ["InversionConfig", "InversionResult", "PoseInverter", "PRESETS"]
+
+Method = Literal["skeleton", "analytic", "autograd"]
+Init = Literal["analytic", "skeleton", "none"]
+Orthogonalization = Literal["newton_schulz", "svd"]
+
+
+@dataclass(frozen=True)
+class InversionConfig:
+    """How to invert. See the module docstring for the methods.
+
+    Attributes:
+        method: "skeleton", "analytic" or "autograd".
+        orthogonalization: polar factor by "newton_schulz" (default) or "svd" (ablation).
+        body_passes, full_passes: analytic schedule (paper default 2 and 1).
+        ns_iters: Newton-Schulz iterations per solve.
+        damping: weight of "stay at the current rotation" relative to the data term; keeps
+            near-coplanar vertex sets (clavicles) well posed.
+        init: start of the autograd solver: "analytic", "skeleton" or "none" (T-pose).
+        steps, lr: Adam iterations and learning rate of the autograd solver.
+        region_weights: per-vertex loss weights of the autograd solver for the regions
+            ``body, hands, feet, head``.
+    """
+
+    method: Method = "analytic"
+    orthogonalization: Orthogonalization = "newton_schulz"
+    body_passes: int = 2
+    full_passes: int = 1
+    ns_iters: int = 30
+    damping: float = 1e-3
+    init: Init = "analytic"
+    steps: int = 100
+    lr: float = 2e-3
+    region_weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+
+    def __post_init__(self) -> None:
+        for name, alias in (("method", Method), ("orthogonalization", Orthogonalization), ("init", Init)):
+            value, choices = getattr(self, name), get_args(alias)
+            if value not in choices:
+                raise ValueError(f"{name}: expected one of {', '.join(choices)}, got {value!r}")
+        for name in ("body_passes", "full_passes", "ns_iters", "steps"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
+        if len(self.region_weights) != len(REGIONS) or min(self.region_weights) < 0:
+            raise ValueError(f"region_weights: expected {len(REGIONS)} non-negative weights "
+                             f"({', '.join(REGIONS)}), got {self.region_weights}")
+
+
+PRESETS: dict[str, InversionConfig] = {
+    "fast": InversionConfig(method="skeleton"),
+    "analytic": InversionConfig(),
+    "svd": InversionConfig(orthogonalization="svd"),
+    "accurate": InversionConfig(method="autograd", init="analytic", steps=100, region_weights=(1.0, 4.0, 2.0, 2.0)),
+}
+
+
+@dataclass(frozen=True, slots=True)
+class InversionResult:
+    """Recovered pose.
+
+    Attributes:
+        pose: (B, 77, 3) axis-angle, T-pose-relative local rotations of joints 1..77.
+        rotations: (B, 77, 3, 3) the same as matrices.
+        transl: (B, 3) m, Hips world position.
+        vertices: (B, V, 3) m, the canonical mesh posed with the result.
+        per_vertex_error: (B, V) m, distance to the target on the canonical topology.
+        iterations: level solves (analytic) or optimiser steps (autograd) performed.
+    """
+
+    pose: torch.Tensor
+    rotations: torch.Tensor
+    transl: torch.Tensor
+    vertices: torch.Tensor
+    per_vertex_error: torch.Tensor
+    iterations: int
+
+
+class PoseInverter(nn.Module):
+    """Invert posed meshes of a :class:`BodyLayer`.
+
+    Args:
+        layer: the body layer whose rig (and identity topology) the meshes use.
+        config: the solver; see :data:`PRESETS`.
+    """
+
+    def __init__(self, layer: BodyLayer, config: InversionConfig | None = None) -> None:
+        super().__init__()
+        self.layer = layer
+        self.config = InversionConfig() if config is None else config
+        tree = layer.rig_tree
+        joint_of = layer._skin_joint
+        skinned = torch.bincount(joint_of, minlength=layer.num_joints) > 0
+        self.register_buffer("observable", skinned[1:].clone(), persistent=False)
+        names = layer.joint_names
+        finger = ["Hand" in n and not n.endswith("Hand") for n in names]
+        dominant = self._dense_argmax(layer)
+        self._levels = {scope: self._level_data(layer, dominant, skinned, finger, scope) for scope in ("body", "full")}
+        regions = joint_regions(names)[dominant]
+        weights = torch.tensor(self.config.region_weights, dtype=layer.skin_weight.dtype)[regions]
+        self.register_buffer("vertex_weight", weights / weights.mean(), persistent=False)
+
+    @staticmethod
+    def _dense_argmax(layer: BodyLayer) -> torch.Tensor:
+        dense = layer.skin_weight.new_zeros(layer.num_vertices, layer.num_joints)
+        dense[layer._skin_vertex, layer._skin_joint] = layer.skin_weight
+        return dense.argmax(1).cpu()
+
+    @staticmethod
+    def _level_data(layer: BodyLayer, dominant, skinned, finger, scope: str) -> list[tuple[torch.Tensor, ...]]:
+        """Per tree level: the solved joints and, for each, the vertices its subtree moves.
+
+        A vertex belongs to the subtree of the level-l ancestor of its dominant joint; it
+        counts with weight omega = the part of its skinning weight inside that subtree.
+        Returns ``[(joints (n,), vertices (m,), slot (m,), omega (m,)), ...]``.
+        """
+        parents = layer.rig_tree.parents
+        depth = [0] * len(parents)
+        for j in range(1, len(parents)):
+            depth[j] = depth[parents[j]] + 1
+
+        def ancestor(j: int, d: int) -> int:
+            while depth[j] > d:
+                j = parents[j]
+            return j if depth[j] == d else -1
+
+        out = []
+        for d, level in enumerate(layer.rig_tree.levels[1:], start=1):
+            joints = [j for j in level if skinned[j] and (scope == "full" or not finger[j])]
+            if not joints:
+                continue
+            slot_of = {j: i for i, j in enumerate(joints)}
+            anc = torch.tensor([slot_of.get(ancestor(j, d), -1) for j in range(len(parents))])
+            vert_slot = anc[dominant]
+            infl_slot = anc[layer._skin_joint.cpu()]
+            same = infl_slot == vert_slot[layer._skin_vertex.cpu()]
+            omega = torch.zeros(layer.num_vertices, dtype=layer.skin_weight.dtype).index_add_(
+                0, layer._skin_vertex.cpu()[same], layer.skin_weight.cpu()[same])
+            verts = torch.nonzero(vert_slot >= 0).flatten()
+            out.append((torch.tensor(joints), verts, vert_slot[verts], omega[verts]))
+        return out
+
+    # -- inputs -------------------------------------------------------------------------
+    def _canonical(self, vertices: torch.Tensor) -> torch.Tensor:
+        layer = self.layer
+        check_shape(vertices, "B N 3", name="vertices")
+        check_like(vertices, layer.tpose_orient, name="vertices", owner="the inverter")
+        check_finite(vertices, "vertices")
+        n = vertices.shape[1]
+        accepted = {layer.num_vertices: "canonical"}
+        if layer.topology is not None:
+            accepted[layer.topology.num_source_vertices] = layer.topology.name
+        if n not in accepted:
+            raise ValueError(f"vertices: expected {' or '.join(f'{k} ({v})' for k, v in accepted.items())} "
+                             f"vertices per mesh, got {n}")
+        centred = vertices - vertices.mean(1, keepdim=True)
+        ev = torch.linalg.eigvalsh(centred.transpose(1, 2) @ centred)
+        flat = ev[:, 0] <= 1e-10 * ev.sum(-1).clamp_min(torch.finfo(ev.dtype).tiny)
+        if bool(flat.any()):
+            b = int(torch.nonzero(flat)[0])
+            raise ValueError(f"vertices: mesh {b} is degenerate (its points are coincident, collinear or "
+                             "coplanar); a posed body spans three dimensions")
+        if n != layer.num_vertices:
+            vertices = layer.topology(vertices)
+        return vertices
+
+    # -- solvers ------------------------------------------------------------------------
+    def _skeleton_init(self, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Absolute local rotations (B, J, 3, 3) and Hips position (B, 3) from SkeletonTransfer."""
+        frames, joints = self.layer.skeleton(target)
+        parents = self.layer.parents
+        local = frames[:, parents].transpose(-1, -2) @ frames
+        local = torch.cat([frames[:, :1], local[:, 1:]], dim=1)
+        return self._zero_unobservable(local), joints[:, 1]
+
+    def _zero_unobservable(self, local: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
+        """Set unobservable joints (or all but ``keep``) to the zero T-pose-relative rotation."""
+        o, parents = self.layer.tpose_orient, self.layer.parents
+        tpose = (o[parents[1:]].transpose(-1, -2) @ o[1:]).expand_as(local[:, 1:])
+        keep = (self.observable if keep is None else keep)[None, :, None, None]
+        return torch.cat([local[:, :1], torch.where(keep, local[:, 1:], tpose)], dim=1)
+
+    def _local_coords(self, prepared: PreparedIdentity) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per influence w_ik a_ik (Bi, nnz, 3) and per joint sum_i w_ik^2 a a^T (Bi, J, 3, 3)."""
+        layer = self.layer
+        v, j, w = layer._skin_vertex, layer._skin_joint, layer.skin_weight
+        a = (prepared.rest_rotations[:, j].transpose(-1, -2)
+             @ (prepared.rest_vertices[:, v] - prepared.rest_joints[:, j])[..., None]).squeeze(-1)
+        wa = w[:, None] * a
+        s = a.new_zeros(a.shape[0], layer.num_joints, 3, 3).index_add_(1, j, wa[..., :, None] * wa[..., None, :])
+        return wa, s
+
+    def _polar(self, h: torch.Tensor) -> torch.Tensor:
+        if self.config.orthogonalization == "svd":
+            return polar_svd(h)
+        return newton_schulz(h, iters=self.config.ns_iters)
+
+    def _analytic(self, prepared, target, local, transl) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """Parent-to-child subtree Procrustes (see the module docstring)."""
+        layer, cfg = self.layer, self.config
+        dev = target.device
+        eye = torch.eye(3, dtype=target.dtype, device=dev)
+        schedule = [self._levels["body"]] * cfg.body_passes + [self._levels["full"]] * cfg.full_passes
+        solves = 0
+        for levels in schedule:
+            for joints, verts, slot, omega in levels:
+                joints, verts, slot, omega = (x.to(dev) for x in (joints, verts, slot, omega))
+                g_rot, g_pos, pred = layer.skin_local(prepared, local, transl)
+                t, p = target[:, verts], pred[:, verts]
+                root = bool(joints[0] == 1)
+                if root:  # the Hips: a rigid fit with translation, about the centroids
+                    ct = t.mean(1, keepdim=True)
+                    cp = p.mean(1, keepdim=True)
+                else:  # a joint rotates its subtree about its own (parent-fixed) position
+                    ct = cp = g_pos[:, joints][:, slot]
+                tq, pq = omega[:, None] * (t - ct), p - cp
+                n = joints.numel()
+                h = tq.new_zeros(tq.shape[0], n, 3, 3).index_add_(1, slot, tq[..., :, None] * pq[..., None, :])
+                # Damping towards the current rotation, lambda * sum omega |p - c|^2 * I: keeps
+                # collinear subtrees (finger chains) and empty ones (delta = I) well posed.
+                spread = tq.new_zeros(tq.shape[0], n).index_add_(1, slot, omega * pq.square().sum(-1))
+                h = h + cfg.damping * spread[..., None, None] * eye
+                delta = self._polar(torch.where((spread > 0)[..., None, None], h, eye))
+                g_new = delta @ g_rot[:, joints]
+                if root:
+                    transl = (ct - (delta @ (cp - g_pos[:, 1:2])[..., None]).squeeze(-1))[:, 0]
+                parent = g_rot[:, layer.parents[joints]]
+                # R_p^T R_p is I only to rounding; without a polish the deviation compounds
+                # down the chain (x3 per level in float32). Two Newton-Schulz steps restore it.
+                new = newton_schulz(parent.transpose(-1, -2) @ g_new, iters=2, init=parent.transpose(-1, -2) @ g_new)
+                local = local.index_copy(1, joints, new)
+                solves += 1
+        return self._zero_unobservable(local), transl, solves
+
+    def _autograd(self, prepared, target, local, transl) -> tuple[torch.Tensor, torch.Tensor, int]:
+        if torch.is_inference_mode_enabled():
+            raise RuntimeError("method 'autograd' needs gradients: call invert() outside torch.inference_mode()")
+        cfg = self.config
+        prepared = PreparedIdentity(*(getattr(prepared, f.name).detach() for f in fields(PreparedIdentity)))
+        target = target.detach()
+        r6 = matrix_to_rot6d(local[:, 1:].detach()).requires_grad_(True)
+        t = transl.detach().clone().requires_grad_(True)
+        opt = torch.optim.Adam([r6, t], lr=cfg.lr)
+        root = local[:, :1].detach()
+        with torch.enable_grad():
+            for _ in range(cfg.steps):
+                opt.zero_grad(set_to_none=True)
+                rot = torch.cat([root, rot6d_to_matrix(r6)], dim=1)
+                _, _, pred = self.layer.skin_local(prepared, rot, t)
+                loss = (self.vertex_weight * (pred - target).square().sum(-1)).mean(1).sum()
+                loss.backward()
+                opt.step()
+        rot = torch.cat([root, rot6d_to_matrix(r6.detach())], dim=1)
+        return self._zero_unobservable(rot), t.detach(), cfg.steps
+
+    # -- entry point --------------------------------------------------------------------
+    def invert(self, vertices: torch.Tensor, prepared: PreparedIdentity) -> InversionResult:
+        """Recover the pose of posed meshes of a known identity.
+
+        Args:
+            vertices: (B, V, 3) canonical or (B, Vs, 3) identity-topology meshes, metres.
+            prepared: the identity (batch 1 or B), from ``layer.prepare_identity``.
+
+        Returns:
+            InversionResult.
+        """
+        if not isinstance(prepared, PreparedIdentity):
+            raise TypeError(f"prepared: expected a PreparedIdentity, got {type(prepared).__name__}")
+        target = self._canonical(vertices)
+        if prepared.batch_size not in (1, target.shape[0]):
+            raise ValueError(f"prepared: identity batch {prepared.batch_size} must be 1 or the mesh batch "
+                             f"{target.shape[0]}")
+        cfg = self.config
+        local, transl = self._skeleton_init(target)
+        iterations = 0
+        if cfg.method == "analytic" or (cfg.method == "autograd" and cfg.init == "analytic"):
+            local, transl, iterations = self._analytic(prepared, target, local, transl)
+        if cfg.method == "autograd":
+            if cfg.init == "none":
+                local = self._zero_unobservable(local, keep=torch.zeros_like(self.observable))
+                transl = target.mean(1)
+            local, transl, iterations = self._autograd(prepared, target, local, transl)
+        _, _, pred = self.layer.skin_local(prepared, local, transl)
+        rel = self.layer.to_relative(local[:, 1:])
+        return InversionResult(matrix_to_axis_angle(rel), rel, transl, pred, (pred - target).norm(dim=-1), iterations)
