@@ -196,14 +196,20 @@ class BodyLayer(nn.Module):
         Returns:
             ``(world_rot (B, J, 3, 3), world_pos (B, J, 3), vertices (B, V, 3))``.
         """
+        g_rot, g_pos, mats = self.skin_transforms(prepared, local_rot, transl)
+        return g_rot, g_pos, lbs_sparse(prepared.rest_vertices, mats, self.skin_weight, self._layout())
+
+    def skin_transforms(
+        self, prepared: PreparedIdentity, local_rot: torch.Tensor, transl: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """FK and skinning transforms: ``(world_rot, world_pos, mats (B, J, 3, 4))``, mats = G T^-1."""
         b = local_rot.shape[0]
         local_t = prepared.offsets.expand(b, -1, -1)
         local_t = torch.cat([local_t[:, :1], transl[:, None], local_t[:, 2:]], dim=1)
         g_rot, g_pos = forward_kinematics(self.rig_tree, local_rot, local_t)
         skin_rot = g_rot @ prepared.rest_rotations.transpose(-1, -2)
         skin_t = g_pos - (skin_rot @ prepared.rest_joints[..., None]).squeeze(-1)
-        mats = torch.cat([skin_rot, skin_t[..., None]], dim=-1)
-        return g_rot, g_pos, lbs_sparse(prepared.rest_vertices, mats, self.skin_weight, self._layout())
+        return g_rot, g_pos, torch.cat([skin_rot, skin_t[..., None]], dim=-1)
 
     def to_relative(self, local_rot: torch.Tensor) -> torch.Tensor:
         """Absolute local rotations (B, 77, 3, 3) -> T-pose-relative: O_p R_abs O_j^T (paper 001)."""

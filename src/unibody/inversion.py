@@ -30,6 +30,7 @@ from torch import nn
 from ._checks import check_finite, check_like, check_shape
 from .body import BodyLayer, PreparedIdentity
 from .geometry.procrustes import newton_schulz, polar_svd
+from .geometry.skinning import lbs_sparse, skin_layout
 from .geometry.rotations import matrix_to_axis_angle, matrix_to_rot6d, rot6d_to_matrix
 from .regions import REGIONS, joint_regions
 
@@ -49,6 +50,8 @@ class InversionConfig:
         orthogonalization: polar factor by "newton_schulz" (default) or "svd" (ablation).
         body_passes, full_passes: analytic schedule (paper default 2 and 1).
         ns_iters: Newton-Schulz iterations per solve.
+        vertices_per_joint: analytic solver: at most this many (seeded sample) vertices per
+            joint's subtree enter its Procrustes fit.
         damping: weight of "stay at the current rotation" relative to the data term; keeps
             near-coplanar vertex sets (clavicles) well posed.
         init: start of the autograd solver: "analytic", "skeleton" or "none" (T-pose).
@@ -61,7 +64,8 @@ class InversionConfig:
     orthogonalization: Orthogonalization = "newton_schulz"
     body_passes: int = 2
     full_passes: int = 1
-    ns_iters: int = 30
+    ns_iters: int = 20
+    vertices_per_joint: int = 256
     damping: float = 1e-3
     init: Init = "analytic"
     steps: int = 100
@@ -129,7 +133,8 @@ class PoseInverter(nn.Module):
         names = layer.joint_names
         finger = ["Hand" in n and not n.endswith("Hand") for n in names]
         dominant = self._dense_argmax(layer)
-        self._levels = {scope: self._level_data(layer, dominant, skinned, finger, scope) for scope in ("body", "full")}
+        cap = self.config.vertices_per_joint
+        self._levels = {s: self._level_data(layer, dominant, skinned, finger, s, cap) for s in ("body", "full")}
         regions = joint_regions(names)[dominant]
         weights = torch.tensor(self.config.region_weights, dtype=layer.skin_weight.dtype)[regions]
         self.register_buffer("vertex_weight", weights / weights.mean(), persistent=False)
@@ -141,12 +146,16 @@ class PoseInverter(nn.Module):
         return dense.argmax(1).cpu()
 
     @staticmethod
-    def _level_data(layer: BodyLayer, dominant, skinned, finger, scope: str) -> list[tuple[torch.Tensor, ...]]:
-        """Per tree level: the solved joints and, for each, the vertices its subtree moves.
+    def _level_data(layer: BodyLayer, dominant, skinned, finger, scope: str, cap: int) -> list[tuple[torch.Tensor, ...]]:
+        """Per tree level: the solved joints and, for each, vertices its subtree moves.
 
-        A vertex belongs to the subtree of the level-l ancestor of its dominant joint; it
-        counts with weight omega = the part of its skinning weight inside that subtree.
-        Returns ``[(joints (n,), vertices (m,), slot (m,), omega (m,)), ...]``.
+        A vertex belongs to the subtree of the level-l ancestor of its dominant joint and
+        counts with weight omega = its skinning weight inside that subtree. At most ``cap``
+        vertices per joint are kept (a fixed seeded sample): a rigid fit needs no more, and
+        the solver then never touches the whole mesh inside a level.
+        Returns ``[(joints (n,), verts (m,), slot (m,), omega (m,), all, sub), ...]`` where
+        ``all`` and ``sub`` are (weights, layout) pairs for :func:`lbs_sparse` over the sampled
+        vertices' influences: all of them, and only those inside the vertex's subtree.
         """
         parents = layer.rig_tree.parents
         depth = [0] * len(parents)
@@ -158,6 +167,8 @@ class PoseInverter(nn.Module):
                 j = parents[j]
             return j if depth[j] == d else -1
 
+        sv, sj, sw = (x.cpu() for x in (layer._skin_vertex, layer._skin_joint, layer.skin_weight))
+        order = torch.randperm(layer.num_vertices, generator=torch.Generator().manual_seed(0))
         out = []
         for d, level in enumerate(layer.rig_tree.levels[1:], start=1):
             joints = [j for j in level if skinned[j] and (scope == "full" or not finger[j])]
@@ -166,12 +177,22 @@ class PoseInverter(nn.Module):
             slot_of = {j: i for i, j in enumerate(joints)}
             anc = torch.tensor([slot_of.get(ancestor(j, d), -1) for j in range(len(parents))])
             vert_slot = anc[dominant]
-            infl_slot = anc[layer._skin_joint.cpu()]
-            same = infl_slot == vert_slot[layer._skin_vertex.cpu()]
-            omega = torch.zeros(layer.num_vertices, dtype=layer.skin_weight.dtype).index_add_(
-                0, layer._skin_vertex.cpu()[same], layer.skin_weight.cpu()[same])
-            verts = torch.nonzero(vert_slot >= 0).flatten()
-            out.append((torch.tensor(joints), verts, vert_slot[verts], omega[verts]))
+            same = anc[sj] == vert_slot[sv]
+            omega = torch.zeros(layer.num_vertices, dtype=sw.dtype).index_add_(0, sv[same], sw[same])
+            shuffled = vert_slot[order]
+            rank = torch.zeros_like(shuffled)
+            for k in range(len(joints)):  # position of each vertex within its joint's shuffled set
+                mask = shuffled == k
+                rank[mask] = torch.arange(int(mask.sum()))
+            verts = order[(shuffled >= 0) & (rank < cap)].sort().values
+            pos = torch.full((layer.num_vertices,), -1, dtype=torch.long)
+            pos[verts] = torch.arange(verts.numel())
+            infl = torch.nonzero(pos[sv] >= 0).flatten()
+            sub = torch.nonzero((pos[sv] >= 0) & same).flatten()
+            all_layout = skin_layout(pos[sv[infl]], sj[infl], verts.numel(), layer.num_joints)
+            sub_layout = skin_layout(pos[sv[sub]], sj[sub], verts.numel(), layer.num_joints)
+            out.append((torch.tensor(joints), verts, vert_slot[verts], omega[verts],
+                        (sw[infl], all_layout), (sw[sub], sub_layout)))
         return out
 
     # -- inputs -------------------------------------------------------------------------
@@ -236,24 +257,35 @@ class PoseInverter(nn.Module):
         eye = torch.eye(3, dtype=target.dtype, device=dev)
         schedule = [self._levels["body"]] * cfg.body_passes + [self._levels["full"]] * cfg.full_passes
         solves = 0
+        rest = prepared.rest_vertices
         for levels in schedule:
-            for joints, verts, slot, omega in levels:
+            for joints, verts, slot, omega, (w_all, all_layout), (w_sub, sub_layout) in levels:
                 joints, verts, slot, omega = (x.to(dev) for x in (joints, verts, slot, omega))
-                g_rot, g_pos, pred = layer.skin_local(prepared, local, transl)
-                t, p = target[:, verts], pred[:, verts]
+                g_rot, g_pos, mats = layer.skin_transforms(prepared, local, transl)
+                rest_s = rest[:, verts]
+                p = lbs_sparse(rest_s, mats, w_all.to(dev, rest.dtype), all_layout.to(dev))
+                t = target[:, verts]
                 root = bool(joints[0] == 1)
-                if root:  # the Hips: a rigid fit with translation, about the centroids
+                if root:  # the Hips move every vertex: a rigid fit with translation about centroids
                     ct = t.mean(1, keepdim=True)
                     cp = p.mean(1, keepdim=True)
-                else:  # a joint rotates its subtree about its own (parent-fixed) position
-                    ct = cp = g_pos[:, joints][:, slot]
-                tq, pq = omega[:, None] * (t - ct), p - cp
+                    tq, pq = t - ct, p - cp
+                else:
+                    # Rotating joint k by delta about its position g moves the subtree part s_i of
+                    # a vertex (weight omega_i) and nothing else: p_i = n_i + delta (s_i - omega_i g)
+                    # + omega_i g. The exact fit of delta is the polar factor of sum r q^T.
+                    s_part = lbs_sparse(rest_s, mats, w_sub.to(dev, rest.dtype), sub_layout.to(dev))
+                    g = omega[:, None] * g_pos[:, joints][:, slot]
+                    pq = s_part - g
+                    tq = t - p + pq
                 n = joints.numel()
                 h = tq.new_zeros(tq.shape[0], n, 3, 3).index_add_(1, slot, tq[..., :, None] * pq[..., None, :])
-                # Damping towards the current rotation, lambda * sum omega |p - c|^2 * I: keeps
+                # Damping towards the current rotation, lambda * sum |q|^2 * I: keeps
                 # collinear subtrees (finger chains) and empty ones (delta = I) well posed.
-                spread = tq.new_zeros(tq.shape[0], n).index_add_(1, slot, omega * pq.square().sum(-1))
+                spread = tq.new_zeros(tq.shape[0], n).index_add_(1, slot, pq.square().sum(-1))
                 h = h + cfg.damping * spread[..., None, None] * eye
+                # Newton-Schulz from h / ||h||_inf (eq. 8); the damping bounds the condition
+                # number of h by ~1/lambda, so ns_iters ~ log_1.5(1/lambda) + 3 steps converge.
                 delta = self._polar(torch.where((spread > 0)[..., None, None], h, eye))
                 g_new = delta @ g_rot[:, joints]
                 if root:
@@ -261,8 +293,8 @@ class PoseInverter(nn.Module):
                 parent = g_rot[:, layer.parents[joints]]
                 # R_p^T R_p is I only to rounding; without a polish the deviation compounds
                 # down the chain (x3 per level in float32). Two Newton-Schulz steps restore it.
-                new = newton_schulz(parent.transpose(-1, -2) @ g_new, iters=2, init=parent.transpose(-1, -2) @ g_new)
-                local = local.index_copy(1, joints, new)
+                new = parent.transpose(-1, -2) @ g_new
+                local = local.index_copy(1, joints, newton_schulz(new, iters=2, init=new))
                 solves += 1
         return self._zero_unobservable(local), transl, solves
 

@@ -36,6 +36,13 @@ def _joint_order(tree: KinematicTree) -> tuple[int, ...]:
     return tuple(inverse)
 
 
+@cache
+def _index_tensors(tree: KinematicTree, device: torch.device) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
+    """The schedule and joint order as index tensors on ``device``, built once per device."""
+    steps = [(torch.tensor(j, device=device), torch.tensor(p, device=device)) for j, p in _schedule(tree)]
+    return steps, torch.tensor(_joint_order(tree), device=device)
+
+
 def forward_kinematics(
     tree: KinematicTree, rot: torch.Tensor, trans: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -52,13 +59,11 @@ def forward_kinematics(
     root = tree.levels[0]
     r_levels = [rot[:, root]]
     t_levels = [trans[:, root]]
-    for joints, slots in _schedule(tree):
-        idx = torch.tensor(joints, device=rot.device)
-        pslot = torch.tensor(slots, device=rot.device)
+    steps, order = _index_tensors(tree, rot.device)
+    for idx, pslot in steps:
         rp, tp = r_levels[-1][:, pslot], t_levels[-1][:, pslot]
         r_levels.append(rp @ rot[:, idx])
         t_levels.append((rp @ trans[:, idx, :, None]).squeeze(-1) + tp)
-    order = torch.tensor(_joint_order(tree), device=rot.device)
     return torch.cat(r_levels, 1)[:, order], torch.cat(t_levels, 1)[:, order]
 
 
