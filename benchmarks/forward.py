@@ -48,8 +48,10 @@ def main() -> None:
     dtype = getattr(torch, args.dtype)
     layer = BodyLayer.from_anny(dtype=dtype).to(args.device)
     gen = torch.Generator().manual_seed(args.seed)
-    print(f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-          f"{args.threads} threads, {args.device}, {args.dtype}")
+    print(
+        f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+        f"{args.threads} threads, {args.device}, {args.dtype}"
+    )
     print("| batch | (a) pose prepared: ms/call | meshes/s | (b) full forward: ms/call | meshes/s |")
     print("|---:|---:|---:|---:|---:|")
     with torch.inference_mode():
@@ -57,8 +59,8 @@ def main() -> None:
         for b in args.batches:
             pose = (0.3 * torch.randn(b, 77, 3, generator=gen)).to(args.device, dtype)
             params = torch.rand(b, 6, generator=gen).to(args.device, dtype)
-            ta = _time(lambda: layer.pose(prepared, pose), args.device)
-            tb = _time(lambda: layer(params, pose), args.device)
+            ta = _time(lambda pose=pose: layer.pose(prepared, pose), args.device)
+            tb = _time(lambda params=params, pose=pose: layer(params, pose), args.device)
             print(f"| {b} | {1e3 * ta:.2f} | {b / ta:,.0f} | {1e3 * tb:.2f} | {b / tb:,.0f} |")
 
 

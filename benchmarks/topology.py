@@ -42,8 +42,7 @@ def inner_vertex_mask(identity: AnnyIdentity, transfer: TopologyTransfer) -> tor
 
 
 def _stats(d_mm: np.ndarray) -> str:
-    return (f"mean {d_mm.mean():.4f}  std {d_mm.std():.4f}  P95 {np.percentile(d_mm, 95):.4f}  "
-            f"max {d_mm.max():.4f}")
+    return f"mean {d_mm.mean():.4f}  std {d_mm.std():.4f}  P95 {np.percentile(d_mm, 95):.4f}  max {d_mm.max():.4f}"
 
 
 def main() -> None:

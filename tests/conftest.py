@@ -47,23 +47,42 @@ def chain_rig(num_joints: int = 5, rings: int = 4, per_ring: int = 6, seed: int 
     q = rng.normal(size=(num_joints, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     x, y, z, s = q.T
-    rot = np.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - s * z), 2 * (x * z + s * y),
-        2 * (x * y + s * z), 1 - 2 * (x * x + z * z), 2 * (y * z - s * x),
-        2 * (x * z - s * y), 2 * (y * z + s * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
+    rot = np.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - s * z),
+            2 * (x * z + s * y),
+            2 * (x * y + s * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - s * x),
+            2 * (x * z - s * y),
+            2 * (y * z + s * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        1,
+    ).reshape(-1, 3, 3)
     rot[0] = np.eye(3)
     bind = np.tile(np.eye(4), (num_joints, 1, 1))
     bind[:, :3, :3], bind[:, :3, 3] = rot, joints
     tpose = rot.copy()
     tpose[1:] = np.eye(3)
     names = ["Root"] + [f"J{i}" for i in range(1, num_joints)]
-    return Rig.from_arrays({
-        "joint_names": np.asarray(names), "parents": np.asarray(parents),
-        "bind_vertices": verts, "faces": np.asarray(faces, dtype=np.int64),
-        "skin_vertex": sv, "skin_joint": sj, "skin_weight": w[sv, sj],
-        "rbf_joint": rj, "rbf_vertex": rv, "rbf_weight": rbf[rj, rv],
-        "bind_transforms": bind, "tpose_orient": tpose,
-    })
+    return Rig.from_arrays(
+        {
+            "joint_names": np.asarray(names),
+            "parents": np.asarray(parents),
+            "bind_vertices": verts,
+            "faces": np.asarray(faces, dtype=np.int64),
+            "skin_vertex": sv,
+            "skin_joint": sj,
+            "skin_weight": w[sv, sj],
+            "rbf_joint": rj,
+            "rbf_vertex": rv,
+            "rbf_weight": rbf[rj, rv],
+            "bind_transforms": bind,
+            "tpose_orient": tpose,
+        }
+    )
 
 
 @pytest.fixture(scope="session")

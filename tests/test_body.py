@@ -54,7 +54,9 @@ def test_pose_formats_agree_and_identity_broadcasts(layer, bind):
     a = layer.pose(bind, aa, transl=transl)
     b = layer.pose(bind, mat, transl=transl)
     c = layer.pose(bind, matrix_to_rot6d(mat), transl=transl)
-    expanded = type(bind)(*(x.expand(3, *x.shape[1:]) for x in (bind.rest_vertices, bind.rest_rotations, bind.rest_joints, bind.offsets)))
+    expanded = type(bind)(
+        *(x.expand(3, *x.shape[1:]) for x in (bind.rest_vertices, bind.rest_rotations, bind.rest_joints, bind.offsets))
+    )
     d = layer.pose(expanded, aa, transl=transl)
     for other in (b, c, d):
         assert (a.vertices - other.vertices).abs().max() < 1e-10
@@ -81,15 +83,18 @@ def test_gradcheck_pose_and_transl(layer, bind):
     gen = torch.Generator().manual_seed(9)
     pose = (0.3 * torch.randn(1, 77, 3, generator=gen, dtype=torch.float64)).requires_grad_(True)
     transl = torch.randn(1, 3, generator=gen, dtype=torch.float64).requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda p, t: _project(layer.pose(bind, p, transl=t).vertices), (pose, transl), fast_mode=True)
+    assert torch.autograd.gradcheck(
+        lambda p, t: _project(layer.pose(bind, p, transl=t).vertices), (pose, transl), fast_mode=True
+    )
 
 
 def test_gradcheck_rest_shape(small_rig):
     """Gradients through skeleton transfer + FK + LBS with respect to the rest mesh."""
     layer = BodyLayer(small_rig)
     gen = torch.Generator().manual_seed(10)
-    rest = (small_rig.bind_vertices + 0.005 * torch.randn(small_rig.num_vertices, 3, generator=gen,
-                                                           dtype=torch.float64))[None].requires_grad_(True)
+    rest = (
+        small_rig.bind_vertices + 0.005 * torch.randn(small_rig.num_vertices, 3, generator=gen, dtype=torch.float64)
+    )[None].requires_grad_(True)
     pose = 0.3 * torch.randn(2, small_rig.num_joints - 1, 3, generator=gen, dtype=torch.float64)
     assert torch.autograd.gradcheck(lambda r: layer.pose(layer.prepare_rest(r), pose).vertices, (rest,), fast_mode=True)
 
@@ -98,16 +103,30 @@ def test_gradcheck_identity_params(anny_layer64):
     gen = torch.Generator().manual_seed(11)
     params = (0.2 + 0.6 * torch.rand(1, 6, generator=gen, dtype=torch.float64)).requires_grad_(True)
     pose = 0.3 * torch.randn(1, 77, 3, generator=gen, dtype=torch.float64)
-    assert torch.autograd.gradcheck(lambda p: _project(anny_layer64(p, pose).vertices), (params,), atol=1e-5, fast_mode=True)
+    assert torch.autograd.gradcheck(
+        lambda p: _project(anny_layer64(p, pose).vertices), (params,), atol=1e-5, fast_mode=True
+    )
 
 
 @pytest.mark.parametrize(
     ("make", "error", "match"),
     [
-        (lambda: torch.zeros(2, 76, 3, dtype=torch.float64), ValueError, r"pose: expected shape \(B, 77, 3\).*got \(2, 76, 3\)"),
+        (
+            lambda: torch.zeros(2, 76, 3, dtype=torch.float64),
+            ValueError,
+            r"pose: expected shape \(B, 77, 3\).*got \(2, 76, 3\)",
+        ),
         (lambda: torch.zeros(2, 77, 4, dtype=torch.float64), ValueError, r"pose: expected shape"),
-        (lambda: torch.full((1, 77, 3), float("nan"), dtype=torch.float64), ValueError, r"pose: expected finite values"),
-        (lambda: torch.zeros(1, 77, 3, dtype=torch.float32), TypeError, r"pose: is float32 on cpu but the layer is float64"),
+        (
+            lambda: torch.full((1, 77, 3), float("nan"), dtype=torch.float64),
+            ValueError,
+            r"pose: expected finite values",
+        ),
+        (
+            lambda: torch.zeros(1, 77, 3, dtype=torch.float32),
+            TypeError,
+            r"pose: is float32 on cpu but the layer is float64",
+        ),
         (lambda: [[0.0] * 3] * 77, TypeError, r"pose: expected a torch.Tensor, got list"),
     ],
 )

@@ -9,22 +9,53 @@ import unibody
 
 def test_all_snapshot():
     assert sorted(unibody.__all__) == [
-        "AnnyIdentity", "BodyLayer", "BodyOutput", "JOINT_NAMES", "KinematicTree", "NUM_JOINTS",
-        "NUM_POSED", "PreparedIdentity", "Rig", "SkeletonTransfer", "TopologyTransfer", "joint_index",
+        "AnnyIdentity",
+        "BodyLayer",
+        "BodyOutput",
+        "JOINT_NAMES",
+        "KinematicTree",
+        "NUM_JOINTS",
+        "NUM_POSED",
+        "PreparedIdentity",
+        "Rig",
+        "SkeletonTransfer",
+        "TopologyTransfer",
+        "joint_index",
     ]
 
 
 def test_output_fields():
-    assert [f.name for f in dataclasses.fields(unibody.BodyOutput)] == ["vertices", "joints", "transforms", "rest_vertices"]
+    assert [f.name for f in dataclasses.fields(unibody.BodyOutput)] == [
+        "vertices",
+        "joints",
+        "transforms",
+        "rest_vertices",
+    ]
     assert [f.name for f in dataclasses.fields(unibody.PreparedIdentity)] == [
-        "rest_vertices", "rest_rotations", "rest_joints", "offsets"]
+        "rest_vertices",
+        "rest_rotations",
+        "rest_joints",
+        "offsets",
+    ]
 
 
 def test_joint_contract():
     names = unibody.JOINT_NAMES
     assert len(names) == unibody.NUM_JOINTS == 78 and unibody.NUM_POSED == 77
-    assert names[:12] == ("Root", "Hips", "Spine1", "Spine2", "Chest", "Neck1", "Neck2", "Head", "HeadEnd", "Jaw",
-                          "LeftEye", "RightEye")
+    assert names[:12] == (
+        "Root",
+        "Hips",
+        "Spine1",
+        "Spine2",
+        "Chest",
+        "Neck1",
+        "Neck2",
+        "Head",
+        "HeadEnd",
+        "Jaw",
+        "LeftEye",
+        "RightEye",
+    )
     assert names[12:16] == ("LeftShoulder", "LeftArm", "LeftForeArm", "LeftHand")
     assert names[68:73] == ("LeftLeg", "LeftShin", "LeftFoot", "LeftToeBase", "LeftToeEnd")
     assert unibody.joint_index("RightToeEnd") == 77

@@ -117,8 +117,13 @@ def test_taylor_branches_are_accurate_to_eps():
     torch.testing.assert_close(rot.axis_angle_to_matrix(aa), expm_aa(aa), atol=1e-15, rtol=0)
     q = rot.axis_angle_to_quat_xyzw(aa)
     torch.testing.assert_close(rot.quat_xyzw_to_axis_angle(q), aa, atol=1e-17, rtol=1e-14)
-    ref = torch.cat([aa / aa.norm(dim=-1, keepdim=True) * torch.sin(aa.norm(dim=-1, keepdim=True) / 2),
-                     torch.cos(aa.norm(dim=-1, keepdim=True) / 2)], -1)
+    ref = torch.cat(
+        [
+            aa / aa.norm(dim=-1, keepdim=True) * torch.sin(aa.norm(dim=-1, keepdim=True) / 2),
+            torch.cos(aa.norm(dim=-1, keepdim=True) / 2),
+        ],
+        -1,
+    )
     torch.testing.assert_close(q, ref, atol=4e-16, rtol=0)
 
 
@@ -146,8 +151,9 @@ def test_axis_angle_corner_angles(dtype):
     n = unit(8, torch.float64, 12)
     half = (2 * n[:, :, None] * n[:, None, :] - torch.eye(3, dtype=torch.float64)).to(dtype)
     back = rot.matrix_to_axis_angle(half)
-    torch.testing.assert_close(back.norm(dim=-1).double(), torch.full((8,), math.pi, dtype=torch.float64),
-                               atol=TOL[dtype], rtol=0)
+    torch.testing.assert_close(
+        back.norm(dim=-1).double(), torch.full((8,), math.pi, dtype=torch.float64), atol=TOL[dtype], rtol=0
+    )
     assert geodesic(rot.axis_angle_to_matrix(back), half).max() < 2 * TOL[dtype]
 
 
@@ -162,10 +168,12 @@ def test_quat_round_trips(dtype):
     Rs = rand_R(256, dtype, 14)
     torch.testing.assert_close(rot.quat_xyzw_to_matrix(rot.matrix_to_quat_xyzw(Rs)), Rs, atol=TOL[dtype], rtol=0)
     aa = rand_aa(64, dtype, 15)
-    torch.testing.assert_close(rot.quat_xyzw_to_axis_angle(rot.axis_angle_to_quat_xyzw(aa)), aa,
-                               atol=TOL[dtype], rtol=0)
-    torch.testing.assert_close(rot.quat_xyzw_to_matrix(rot.axis_angle_to_quat_xyzw(aa)),
-                               rot.axis_angle_to_matrix(aa), atol=TOL[dtype], rtol=0)
+    torch.testing.assert_close(
+        rot.quat_xyzw_to_axis_angle(rot.axis_angle_to_quat_xyzw(aa)), aa, atol=TOL[dtype], rtol=0
+    )
+    torch.testing.assert_close(
+        rot.quat_xyzw_to_matrix(rot.axis_angle_to_quat_xyzw(aa)), rot.axis_angle_to_matrix(aa), atol=TOL[dtype], rtol=0
+    )
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -256,7 +264,7 @@ def test_swing_twist_pure_twist_and_degenerate(dtype):
     assert angle.item() == 0.0 and torch.isfinite(swing).all()
     torch.testing.assert_close(swing, R)
     # An exact half-turn twist (w == 0) is reported as +pi, never -pi, for either axis sign.
-    half = (2 * axis[:, None] * axis[None, :] - torch.eye(3, dtype=dtype))
+    half = 2 * axis[:, None] * axis[None, :] - torch.eye(3, dtype=dtype)
     for sign in (1.0, -1.0):
         swing, angle = rot.swing_twist(half, sign * axis)
         assert angle.item() == pytest.approx(math.pi, abs=TOL[dtype])
@@ -280,7 +288,9 @@ def test_shortest_arc(dtype):
     anti = rot.shortest_arc(a, -0.1 * a)
     assert_rotation(anti, TOL[dtype])
     torch.testing.assert_close((anti @ u[..., None])[..., 0], -u, atol=TOL[dtype], rtol=0)
-    torch.testing.assert_close(rot.rotation_angle(anti), torch.full((64,), math.pi, dtype=dtype), atol=TOL[dtype], rtol=0)
+    torch.testing.assert_close(
+        rot.rotation_angle(anti), torch.full((64,), math.pi, dtype=dtype), atol=TOL[dtype], rtol=0
+    )
     # Deterministic axis for exact antiparallel: e_x x e_y (e_y: first most perpendicular) = e_z.
     ex = torch.tensor([[2.0, 0.0, 0.0]], dtype=dtype)
     torch.testing.assert_close(rot.shortest_arc(ex, -ex)[0], torch.diag(torch.tensor([-1.0, -1.0, 1.0], dtype=dtype)))

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import torch
 
+from conftest import TOL
 from unibody.geometry.kinematics import forward_kinematics, relative_to_parent
 from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.geometry.skinning import lbs_dense, lbs_sparse, skin_layout
-
-from conftest import TOL
 
 
 def _random_mats(b, j, gen, dtype):
@@ -64,12 +63,15 @@ def test_lbs_gradcheck(small_rig):
     gen = torch.Generator().manual_seed(3)
     layout = _layout(small_rig)
     for n_rest in (1, 2):
-        rest = (small_rig.bind_vertices[None].repeat(n_rest, 1, 1)
-                + 0.01 * torch.randn(n_rest, small_rig.num_vertices, 3, generator=gen, dtype=torch.float64))
+        rest = small_rig.bind_vertices[None].repeat(n_rest, 1, 1) + 0.01 * torch.randn(
+            n_rest, small_rig.num_vertices, 3, generator=gen, dtype=torch.float64
+        )
         mats = _random_mats(2, small_rig.num_joints, gen, torch.float64)
         rest.requires_grad_(True)
         mats.requires_grad_(True)
-        assert torch.autograd.gradcheck(lambda r, m: lbs_sparse(r, m, small_rig.skin_weight, layout), (rest, mats), fast_mode=True)
+        assert torch.autograd.gradcheck(
+            lambda r, m: lbs_sparse(r, m, small_rig.skin_weight, layout), (rest, mats), fast_mode=True
+        )
 
 
 def _fk_loop(parents, rot, trans):

@@ -210,7 +210,9 @@ def mapping():
     r = 0.3 + 0.02 * torch.randn(nu, nv, generator=g, dtype=F64)
     verts = torch.stack([(1 + r * v.cos()) * u.cos(), (1 + r * v.cos()) * u.sin(), r * v.sin()], -1).reshape(-1, 3)
     i, j = torch.meshgrid(torch.arange(nu), torch.arange(nv), indexing="ij")
-    quads = torch.stack([i * nv + j, ((i + 1) % nu) * nv + j, ((i + 1) % nu) * nv + (j + 1) % nv, i * nv + (j + 1) % nv], -1)
+    quads = torch.stack(
+        [i * nv + j, ((i + 1) % nu) * nv + j, ((i + 1) % nu) * nv + (j + 1) % nv, i * nv + (j + 1) % nv], -1
+    )
     faces = quads_to_triangles(quads.reshape(-1, 4))
     tri = verts[faces]
     lam = torch.rand(faces.shape[0], 3, generator=g, dtype=F64)

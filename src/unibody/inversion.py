@@ -30,8 +30,8 @@ from torch import nn
 from ._checks import check_finite, check_like, check_shape
 from .body import BodyLayer, PreparedIdentity
 from .geometry.procrustes import newton_schulz, polar_svd
-from .geometry.skinning import lbs_sparse, skin_layout
 from .geometry.rotations import matrix_to_axis_angle, matrix_to_rot6d, rot6d_to_matrix
+from .geometry.skinning import lbs_sparse, skin_layout
 from .regions import REGIONS, joint_regions
 
 __all__ = ["InversionConfig", "InversionResult", "PoseInverter", "PRESETS"]
@@ -81,8 +81,10 @@ class InversionConfig:
             if getattr(self, name) < 0:
                 raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
         if len(self.region_weights) != len(REGIONS) or min(self.region_weights) < 0:
-            raise ValueError(f"region_weights: expected {len(REGIONS)} non-negative weights "
-                             f"({', '.join(REGIONS)}), got {self.region_weights}")
+            raise ValueError(
+                f"region_weights: expected {len(REGIONS)} non-negative weights "
+                f"({', '.join(REGIONS)}), got {self.region_weights}"
+            )
 
 
 PRESETS: dict[str, InversionConfig] = {
@@ -126,7 +128,6 @@ class PoseInverter(nn.Module):
         super().__init__()
         self.layer = layer
         self.config = InversionConfig() if config is None else config
-        tree = layer.rig_tree
         joint_of = layer._skin_joint
         skinned = torch.bincount(joint_of, minlength=layer.num_joints) > 0
         self.register_buffer("observable", skinned[1:].clone(), persistent=False)
@@ -146,7 +147,9 @@ class PoseInverter(nn.Module):
         return dense.argmax(1).cpu()
 
     @staticmethod
-    def _level_data(layer: BodyLayer, dominant, skinned, finger, scope: str, cap: int) -> list[tuple[torch.Tensor, ...]]:
+    def _level_data(
+        layer: BodyLayer, dominant, skinned, finger, scope: str, cap: int
+    ) -> list[tuple[torch.Tensor, ...]]:
         """Per tree level: the solved joints and, for each, vertices its subtree moves.
 
         A vertex belongs to the subtree of the level-l ancestor of its dominant joint and
@@ -191,8 +194,16 @@ class PoseInverter(nn.Module):
             sub = torch.nonzero((pos[sv] >= 0) & same).flatten()
             all_layout = skin_layout(pos[sv[infl]], sj[infl], verts.numel(), layer.num_joints)
             sub_layout = skin_layout(pos[sv[sub]], sj[sub], verts.numel(), layer.num_joints)
-            out.append((torch.tensor(joints), verts, vert_slot[verts], omega[verts],
-                        (sw[infl], all_layout), (sw[sub], sub_layout)))
+            out.append(
+                (
+                    torch.tensor(joints),
+                    verts,
+                    vert_slot[verts],
+                    omega[verts],
+                    (sw[infl], all_layout),
+                    (sw[sub], sub_layout),
+                )
+            )
         return out
 
     # -- inputs -------------------------------------------------------------------------
@@ -206,15 +217,19 @@ class PoseInverter(nn.Module):
         if layer.topology is not None:
             accepted[layer.topology.num_source_vertices] = layer.topology.name
         if n not in accepted:
-            raise ValueError(f"vertices: expected {' or '.join(f'{k} ({v})' for k, v in accepted.items())} "
-                             f"vertices per mesh, got {n}")
+            raise ValueError(
+                f"vertices: expected {' or '.join(f'{k} ({v})' for k, v in accepted.items())} "
+                f"vertices per mesh, got {n}"
+            )
         centred = vertices - vertices.mean(1, keepdim=True)
         ev = torch.linalg.eigvalsh(centred.transpose(1, 2) @ centred)
         flat = ev[:, 0] <= 1e-10 * ev.sum(-1).clamp_min(torch.finfo(ev.dtype).tiny)
         if bool(flat.any()):
             b = int(torch.nonzero(flat)[0])
-            raise ValueError(f"vertices: mesh {b} is degenerate (its points are coincident, collinear or "
-                             "coplanar); a posed body spans three dimensions")
+            raise ValueError(
+                f"vertices: mesh {b} is degenerate (its points are coincident, collinear or "
+                "coplanar); a posed body spans three dimensions"
+            )
         if n != layer.num_vertices:
             vertices = layer.topology(vertices)
         return vertices
@@ -239,8 +254,10 @@ class PoseInverter(nn.Module):
         """Per influence w_ik a_ik (Bi, nnz, 3) and per joint sum_i w_ik^2 a a^T (Bi, J, 3, 3)."""
         layer = self.layer
         v, j, w = layer._skin_vertex, layer._skin_joint, layer.skin_weight
-        a = (prepared.rest_rotations[:, j].transpose(-1, -2)
-             @ (prepared.rest_vertices[:, v] - prepared.rest_joints[:, j])[..., None]).squeeze(-1)
+        a = (
+            prepared.rest_rotations[:, j].transpose(-1, -2)
+            @ (prepared.rest_vertices[:, v] - prepared.rest_joints[:, j])[..., None]
+        ).squeeze(-1)
         wa = w[:, None] * a
         s = a.new_zeros(a.shape[0], layer.num_joints, 3, 3).index_add_(1, j, wa[..., :, None] * wa[..., None, :])
         return wa, s
@@ -334,8 +351,9 @@ class PoseInverter(nn.Module):
             raise TypeError(f"prepared: expected a PreparedIdentity, got {type(prepared).__name__}")
         target = self._canonical(vertices)
         if prepared.batch_size not in (1, target.shape[0]):
-            raise ValueError(f"prepared: identity batch {prepared.batch_size} must be 1 or the mesh batch "
-                             f"{target.shape[0]}")
+            raise ValueError(
+                f"prepared: identity batch {prepared.batch_size} must be 1 or the mesh batch {target.shape[0]}"
+            )
         cfg = self.config
         local, transl = self._skeleton_init(target)
         iterations = 0

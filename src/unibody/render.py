@@ -408,7 +408,9 @@ def render_image(
     # Scene arrays.
     offsets = np.cumsum([0] + [len(m.vertices) for m in meshes])
     verts = np.concatenate([m.vertices for m in meshes])
-    faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets[:-1])]) if meshes else np.zeros((0, 3))
+    faces = (
+        np.concatenate([m.faces + o for m, o in zip(meshes, offsets[:-1], strict=True)]) if meshes else np.zeros((0, 3))
+    )
     faces = faces.astype(np.int64).reshape(-1, 3)
     face_mesh = np.repeat(np.arange(len(meshes)), [len(m.faces) for m in meshes])
     normals = np.concatenate([vertex_normals(m.vertices, m.faces) for m in meshes])

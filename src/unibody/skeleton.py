@@ -52,7 +52,9 @@ class SkeletonTransfer(nn.Module):
         self.register_buffer("op_col", cols[order], persistent=False)
         self.register_buffer("op_val", vals[order], persistent=False)
         # Constant per-joint sums over the bind mesh: sum_i w_ik c_i and sum_i w_ik.
-        sums = torch.zeros(j, 4, dtype=c1.dtype).index_add_(0, rig.skin_joint, rig.skin_weight[:, None] * c1[rig.skin_vertex])
+        sums = torch.zeros(j, 4, dtype=c1.dtype).index_add_(
+            0, rig.skin_joint, rig.skin_weight[:, None] * c1[rig.skin_vertex]
+        )
         self.register_buffer("bind_sums", sums, persistent=False)
         self.register_buffer("bind_pos", bind_pos, persistent=False)
         self.register_buffer("bind_rot", rig.bind_transforms[:, :3, :3], persistent=False)
@@ -104,8 +106,12 @@ class SkeletonTransfer(nn.Module):
         s_v = sums[..., 3, :]
         m, n = self.bind_sums[:, :3], self.bind_sums[:, 3]
         cb = self.bind_pos
-        h = (s_vc - s_v[..., :, None] * cb[:, None, :] - joints[..., :, None] * m[:, None, :]
-             + n[:, None, None] * joints[..., :, None] * cb[:, None, :])
+        h = (
+            s_vc
+            - s_v[..., :, None] * cb[:, None, :]
+            - joints[..., :, None] * m[:, None, :]
+            + n[:, None, None] * joints[..., :, None] * cb[:, None, :]
+        )
         r = polar_svd(h[:, self.skinned])
         eye = torch.eye(3, dtype=r.dtype, device=r.device).expand(b, 1, 3, 3)
         return torch.cat([eye, r], dim=1)[:, self.donor]
@@ -120,7 +126,8 @@ class SkeletonTransfer(nn.Module):
         src = (r_init[:, self.multi_k] @ bind_bone(self.multi_k, self.multi_c)[..., None]).squeeze(-1)
         dst = joints[:, self.multi_c] - joints[:, self.multi_k]
         h = joints.new_zeros(b, len(self.multi_joints), 3, 3).index_add(
-            1, self.multi_slot, dst[..., :, None] * src[..., None, :])
+            1, self.multi_slot, dst[..., :, None] * src[..., None, :]
+        )
         align = eye.expand(b, self.num_joints, 3, 3)
         align = align.index_copy(1, self.single_k, single)
         return align.index_copy(1, self.multi_joints, polar_svd(h))
@@ -140,6 +147,6 @@ class SkeletonTransfer(nn.Module):
         check_finite(vertices, "vertices")
         out = self._apply_operator(vertices)
         joints = out[:, : self.num_joints]
-        r_init = self._init_rotations(out[:, self.num_joints:].unflatten(1, (self.num_joints, 4)), joints)
+        r_init = self._init_rotations(out[:, self.num_joints :].unflatten(1, (self.num_joints, 4)), joints)
         r_align = self._align_children(r_init, joints)
         return r_align @ r_init @ self.bind_rot, joints

@@ -33,8 +33,10 @@ class TopologyTransfer(nn.Module):
         self.name = name
         self.num_source_vertices = num_source_vertices
         if int(face_vertices.max()) >= num_source_vertices or int(face_vertices.min()) < 0:
-            raise ValueError(f"face_vertices: expected ids in [0, {num_source_vertices}), "
-                             f"got range [{int(face_vertices.min())}, {int(face_vertices.max())}]")
+            raise ValueError(
+                f"face_vertices: expected ids in [0, {num_source_vertices}), "
+                f"got range [{int(face_vertices.min())}, {int(face_vertices.max())}]"
+            )
         self.register_buffer("face_vertices", face_vertices.long(), persistent=False)
         self.register_buffer("weights", weights, persistent=False)
 

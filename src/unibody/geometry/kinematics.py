@@ -37,7 +37,9 @@ def _joint_order(tree: KinematicTree) -> tuple[int, ...]:
 
 
 @cache
-def _index_tensors(tree: KinematicTree, device: torch.device) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
+def _index_tensors(
+    tree: KinematicTree, device: torch.device
+) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
     """The schedule and joint order as index tensors on ``device``, built once per device."""
     steps = [(torch.tensor(j, device=device), torch.tensor(p, device=device)) for j, p in _schedule(tree)]
     return steps, torch.tensor(_joint_order(tree), device=device)
@@ -88,7 +90,9 @@ def relative_to_parent(
     return local_r, local_t
 
 
-def compose(r1: torch.Tensor, t1: torch.Tensor, r2: torch.Tensor, t2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def compose(
+    r1: torch.Tensor, t1: torch.Tensor, r2: torch.Tensor, t2: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(r1, t1) after (r2, t2): x -> r1 (r2 x + t2) + t1."""
     return r1 @ r2, (r1 @ t2[..., None]).squeeze(-1) + t1
 

@@ -63,11 +63,16 @@ def skin_layout(vertex: torch.Tensor, joint: torch.Tensor, num_vertices: int, nu
     x_col = (4 * joint[:, None] + four).reshape(-1)
     perm = torch.argsort(x_col * num_vertices + x_row)
     return SkinLayout(
-        vertex=vertex, joint=joint,
-        x_crow=_crow(x_row, num_vertices), x_col=x_col,
-        xt_crow=_crow(x_col, 4 * num_joints), xt_col=x_row[perm], xt_perm=perm,
+        vertex=vertex,
+        joint=joint,
+        x_crow=_crow(x_row, num_vertices),
+        x_col=x_col,
+        xt_crow=_crow(x_col, 4 * num_joints),
+        xt_col=x_row[perm],
+        xt_perm=perm,
         w_crow=_crow(vertex, num_vertices),
-        num_vertices=num_vertices, num_joints=num_joints,
+        num_vertices=num_vertices,
+        num_joints=num_joints,
     )
 
 

@@ -260,7 +260,9 @@ class TetCorrespondence:
         return apply_correspondence(vertices, self.face_vertices.to(vertices.device), w)
 
 
-def build_correspondence(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor, **search) -> TetCorrespondence:
+def build_correspondence(
+    points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor, **search
+) -> TetCorrespondence:
     """Closest source triangle + tetrahedral weights of ``points (N, 3)``, in float64.
 
     Zero-area faces are skipped (their tetrahedron would be singular). Extra

@@ -84,8 +84,9 @@ class AnnyIdentity(nn.Module):
             if bool(bad.any()):
                 b, k = (int(i) for i in torch.nonzero(bad)[0])
                 label = self.param_names[k + (0 if name == "phenotype" else n)]
-                raise ValueError(f"identity params: {name} {label!r} must lie in [{lo:g}, 1], "
-                                 f"got {float(x[b, k]):.4g} at batch {b}")
+                raise ValueError(
+                    f"identity params: {name} {label!r} must lie in [{lo:g}, 1], got {float(x[b, k]):.4g} at batch {b}"
+                )
         coeffs = self.model._get_phenotype_blendshape_coefficients(phen, local, params.new_zeros(params.shape[0], 0))
         v = self.model.get_rest_vertices(coeffs)
         return torch.stack([v[..., 0], v[..., 2], -v[..., 1]], dim=-1)

@@ -78,8 +78,7 @@ class MeshSpec:
             lo, hi = int(f.min()), int(f.max())
             if lo < 0 or hi >= len(v):
                 raise ValueError(
-                    f"faces: indices must lie in [0, {len(v) - 1}] for {len(v)} vertices, "
-                    f"got range [{lo}, {hi}]"
+                    f"faces: indices must lie in [0, {len(v) - 1}] for {len(v)} vertices, got range [{lo}, {hi}]"
                 )
 
         c = np.asarray(self.color, dtype=np.float64)
