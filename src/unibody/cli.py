@@ -82,6 +82,68 @@ def run_demo(out_dir: Path) -> None:
     print(f"wrote {out_dir / 'demo.png'}  {1e3 * (t2 - t1):8.1f} ms")
 
 
+def run_invert(seq_path: Path, out: Path, preset: str, batch: int) -> None:
+    """Invert a mesh sequence into a motion file, printing progress."""
+    import numpy as np
+
+    from .body import BodyLayer
+    from .inversion import PRESETS, PoseInverter
+    from .io.motion import Motion, load_mesh_sequence, save_motion
+
+    if preset not in PRESETS:
+        raise SystemExit(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
+    seq = load_mesh_sequence(seq_path)
+    if seq.topology not in ("canonical", "anny"):
+        raise SystemExit(f"{seq_path}: topology: expected 'canonical' or 'anny', got {seq.topology!r}")
+    layer = BodyLayer.from_anny()
+    inverter = PoseInverter(layer, PRESETS[preset])
+    vertices = torch.from_numpy(np.asarray(seq.vertices, np.float32))
+    if seq.identity is not None:
+        prepared = layer.prepare_identity(torch.from_numpy(np.asarray(seq.identity, np.float32))[None])
+    else:
+        prepared = inverter.estimate_identity(vertices[:1])
+        print("no identity in the file: estimated the rest shape from frame 0")
+    poses, transl, errors = [], [], []
+    t0 = time.perf_counter()
+    grad = torch.enable_grad() if PRESETS[preset].method == "autograd" else torch.no_grad()
+    with grad:
+        for start in range(0, len(vertices), batch):
+            result = inverter.invert(vertices[start : start + batch], prepared)
+            poses.append(result.pose.detach())
+            transl.append(result.transl.detach())
+            errors.append(result.per_vertex_error.detach().mean(1))
+            done = min(start + batch, len(vertices))
+            print(
+                f"\rinverted {done}/{len(vertices)} frames ({done / (time.perf_counter() - t0):.0f} frames/s)",
+                end="",
+                flush=True,
+            )
+    print()
+    err = torch.cat(errors)
+    identity = None if seq.identity is None else np.asarray(seq.identity, np.float32)
+    motion = Motion(
+        torch.cat(poses).numpy(), torch.cat(transl).numpy(), 30.0, identity, "anny" if identity is not None else None
+    )
+    save_motion(out, motion)
+    print(f"wrote {out}: {len(err)} frames, mean per-vertex error {1e3 * float(err.mean()):.2f} mm")
+
+
+def run_pose(motion_path: Path, out: Path) -> None:
+    """Pose a motion file back into canonical meshes (npz: vertices (T, V, 3), faces)."""
+    import numpy as np
+
+    from .body import BodyLayer
+    from .io.motion import load_motion
+
+    motion = load_motion(motion_path)
+    layer = BodyLayer.from_anny()
+    params = np.full((1, 6), 0.5, np.float32) if motion.identity is None else motion.identity[None]
+    prepared = layer.prepare_identity(torch.from_numpy(np.asarray(params, np.float32)))
+    out_v = layer.pose(prepared, torch.from_numpy(motion.pose), transl=torch.from_numpy(motion.transl)).vertices
+    np.savez(out, vertices=out_v.numpy(), faces=layer.faces.numpy(), topology=np.asarray("canonical"))
+    print(f"wrote {out}: {len(out_v)} meshes")
+
+
 def _assets_info() -> None:
     from . import assets
 
@@ -100,12 +162,24 @@ def main(argv: list[str] | None = None) -> int:
     demo = sub.add_parser("demo", help="pose five Anny identities; write demo.glb and demo.png")
     demo.add_argument("--out", type=Path, default=Path("unibody_demo"), help="output folder")
     sub.add_parser("assets", help="build (once) and describe the canonical asset cache")
+    inv = sub.add_parser("invert", help="mesh sequence (npz: vertices (T, N, 3), topology) -> motion npz")
+    inv.add_argument("sequence", type=Path)
+    inv.add_argument("--out", type=Path, required=True, help="motion file to write")
+    inv.add_argument("--preset", default="analytic", help="fast | analytic | svd | accurate")
+    inv.add_argument("--batch", type=int, default=64)
+    pose = sub.add_parser("pose", help="motion npz -> canonical meshes npz (vertices (T, V, 3), faces)")
+    pose.add_argument("motion", type=Path)
+    pose.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     torch.set_grad_enabled(False)
     if args.command == "demo":
         run_demo(args.out)
     elif args.command == "assets":
         _assets_info()
+    elif args.command == "invert":
+        run_invert(args.sequence, args.out, args.preset, args.batch)
+    elif args.command == "pose":
+        run_pose(args.motion, args.out)
     return 0
 
 

@@ -29,9 +29,11 @@ from torch import nn
 
 from ._checks import check_finite, check_like, check_shape
 from .body import BodyLayer, PreparedIdentity
+from .geometry.kinematics import forward_kinematics
 from .geometry.procrustes import newton_schulz, polar_svd
 from .geometry.rotations import matrix_to_axis_angle, matrix_to_rot6d, rot6d_to_matrix
 from .geometry.skinning import lbs_sparse, skin_layout
+from .geometry.sparse import csr
 from .regions import REGIONS, joint_regions
 
 __all__ = ["InversionConfig", "InversionResult", "PoseInverter", "PRESETS"]
@@ -69,7 +71,7 @@ class InversionConfig:
     damping: float = 1e-3
     init: Init = "analytic"
     steps: int = 100
-    lr: float = 2e-3
+    lr: float = 1e-3
     region_weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
 
     def __post_init__(self) -> None:
@@ -324,17 +326,57 @@ class PoseInverter(nn.Module):
         r6 = matrix_to_rot6d(local[:, 1:].detach()).requires_grad_(True)
         t = transl.detach().clone().requires_grad_(True)
         opt = torch.optim.Adam([r6, t], lr=cfg.lr)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(cfg.steps, 1))
         root = local[:, :1].detach()
+        best_r6, best_t = r6.detach().clone(), t.detach().clone()
+        best = torch.full((r6.shape[0],), float("inf"), dtype=r6.dtype, device=r6.device)
         with torch.enable_grad():
-            for _ in range(cfg.steps):
+            for _ in range(cfg.steps + 1):
                 opt.zero_grad(set_to_none=True)
                 rot = torch.cat([root, rot6d_to_matrix(r6)], dim=1)
                 _, _, pred = self.layer.skin_local(prepared, rot, t)
-                loss = (self.vertex_weight * (pred - target).square().sum(-1)).mean(1).sum()
-                loss.backward()
+                per_frame = (self.vertex_weight * (pred - target).square().sum(-1)).mean(1)
+                # Keep each frame's best iterate: Adam's steps need not decrease the loss.
+                better = per_frame.detach() < best
+                best = torch.where(better, per_frame.detach(), best)
+                best_r6 = torch.where(better[:, None, None], r6.detach(), best_r6)
+                best_t = torch.where(better[:, None], t.detach(), best_t)
+                per_frame.sum().backward()
                 opt.step()
-        rot = torch.cat([root, rot6d_to_matrix(r6.detach())], dim=1)
-        return self._zero_unobservable(rot), t.detach(), cfg.steps
+                sched.step()
+        rot = torch.cat([root, rot6d_to_matrix(best_r6)], dim=1)
+        return self._zero_unobservable(rot), best_t, cfg.steps
+
+    def estimate_identity(self, vertices: torch.Tensor) -> PreparedIdentity:
+        """Rest shapes of unknown identities from posed meshes (the "identity unknown" path).
+
+        SkeletonTransfer on the posed mesh gives the posed skeleton; its bones are re-posed
+        into the T-pose, and the mesh is un-posed by inverting each vertex's blended skinning
+        transform. The result is a T-pose rest shape on which the skeleton is fitted again.
+
+        Args:
+            vertices: (B, V, 3) canonical or (B, Vs, 3) identity-topology posed meshes.
+
+        Returns:
+            PreparedIdentity of batch B.
+        """
+        layer = self.layer
+        target = self._canonical(vertices)
+        b = target.shape[0]
+        frames, joints = layer.skeleton(target)
+        parents = layer.parents
+        offsets = (frames[:, parents].transpose(-1, -2) @ (joints - joints[:, parents])[..., None]).squeeze(-1)
+        offsets = torch.cat([offsets[:, :1], joints[:, 1:2], offsets[:, 2:]], dim=1)
+        o = layer.tpose_orient
+        local = torch.cat([o[:1], o[parents[1:]].transpose(-1, -2) @ o[1:]]).expand(b, -1, -1, -1)
+        rest_rot, rest_pos = forward_kinematics(layer.rig_tree, local, offsets)
+        skin_rot = frames @ rest_rot.transpose(-1, -2)
+        skin_t = joints - (skin_rot @ rest_pos[..., None]).squeeze(-1)
+        mats = torch.cat([skin_rot, skin_t[..., None]], dim=-1)  # (B, J, 3, 4)
+        w = csr(layer._skin_w_crow, layer._skin_joint, layer.skin_weight, (layer.num_vertices, layer.num_joints))
+        blended = (w @ mats.permute(1, 0, 2, 3).reshape(layer.num_joints, -1)).view(-1, b, 3, 4).transpose(0, 1)
+        rest = torch.linalg.solve(blended[..., :3], target - blended[..., 3])
+        return layer.prepare_rest(rest)
 
     # -- entry point --------------------------------------------------------------------
     def invert(self, vertices: torch.Tensor, prepared: PreparedIdentity) -> InversionResult:
