@@ -47,7 +47,9 @@ _NEAR = 1e-3
 _BLOCK = 1 << 21  # candidate pixels per block
 _STRIP = 1 << 16  # bounding boxes larger than this are cut into row strips
 _EMPTY = np.iinfo(np.int64).max
-_DEPTH_LEVELS = (1 << 31) - 2
+# 2^30 levels: exactly representable in float32 (2^31 - 2 rounds up to 2^31, and 2^31 << 32
+# overflows the int64 key into a negative number that wins every depth test).
+_DEPTH_LEVELS = 1 << 30
 _EPS = 1e-5  # edge-function slack in barycentric units: closes cracks on shared edges
 
 _BG_TOP = np.array([0.97, 0.975, 0.985])

@@ -1,0 +1,140 @@
+"""Pose-inversion accuracy, speed and temporal stability (paper 000 §4.2, Tables 2-3, Fig. 10).
+
+Protocols (all data generated from seeds; nothing here is used for training):
+  random   the py-soma-x protocol: random poses, 0.3 rad std axis-angle on every joint,
+           0.1 m translation std; one Anny identity per batch of 64.
+  smooth   a seeded smooth motion generator: per joint a sum of three sinusoids
+           (0.1-0.7 Hz, 30 fps) with amplitude 0.35 rad (fingers 0.2), over --identities
+           Anny identities x --frames frames each.
+For each method: mean / median / max per-vertex error (mm) against the BodyLayer mesh that
+produced the target, per region (body, hands, feet, head), and frames/s at batch 64.
+Temporal: on one smooth sequence of --stability-frames frames, the mean frame-to-frame
+change of the shoulder-region error (SVD vs Newton-Schulz) and the largest frame-to-frame
+rotation change of any observable joint, against that of the ground-truth motion.
+
+    python benchmarks/inversion.py [--identities 20] [--frames 100] [--stability-frames 2000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import torch
+
+from unibody import BodyLayer, Rig
+from unibody.geometry.rotations import axis_angle_to_matrix, rotation_angle
+from unibody.inversion import InversionConfig, PoseInverter
+from unibody.regions import REGIONS, vertex_regions
+
+METHODS = {
+    "skeleton transfer": InversionConfig(method="skeleton"),
+    "analytic (Newton-Schulz)": InversionConfig(),
+    "analytic (SVD)": InversionConfig(orthogonalization="svd"),
+    "analytic + autograd (30)": InversionConfig(method="autograd", init="analytic", steps=30),
+    "autograd, no init (30)": InversionConfig(method="autograd", init="none", steps=30),
+}
+
+
+def smooth_motion(frames: int, gen: torch.Generator, finger: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(T, 77, 3) smooth poses and (T, 3) translations at 30 fps."""
+    t = torch.arange(frames, dtype=torch.float64)[:, None, None, None] / 30.0
+    freq = 0.1 + 0.6 * torch.rand(1, 77, 3, 3, generator=gen, dtype=torch.float64)
+    phase = 2 * math.pi * torch.rand(1, 77, 3, 3, generator=gen, dtype=torch.float64)
+    amp = torch.where(finger[None, :, None, None], 0.2, 0.35) / math.sqrt(3)
+    pose = (amp * torch.sin(2 * math.pi * freq * t + phase)).sum(-1)
+    transl = 0.1 * torch.sin(2 * math.pi * 0.3 * t[:, 0, 0] + torch.tensor([0.0, 1.0, 2.0], dtype=torch.float64))
+    return pose, transl
+
+
+def run(layer, inverter, prepared, target, batch: int = 64):
+    """Invert in batches; returns (errors (T, V) m, result poses (T, 77, 3, 3), seconds)."""
+    errs, rots, seconds = [], [], 0.0
+    grad = inverter.config.method == "autograd"
+    for s in range(0, len(target), batch):
+        t0 = time.perf_counter()
+        with torch.set_grad_enabled(grad):
+            r = inverter.invert(target[s : s + batch], prepared)
+        seconds += time.perf_counter() - t0
+        errs.append(r.per_vertex_error.detach())
+        rots.append(r.rotations.detach())
+    return torch.cat(errs), torch.cat(rots), seconds
+
+
+def report(name: str, err: torch.Tensor, seconds: float, regions: torch.Tensor) -> None:
+    e = 1e3 * err
+    per_region = "  ".join(f"{REGIONS[k]} {e[:, regions == k].mean():.2f}" for k in range(len(REGIONS)))
+    print(f"| {name} | {e.mean():.2f} | {e.median():.2f} | {e.max():.1f} | {len(e) / seconds:,.0f} | {per_region} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--identities", type=int, default=20)
+    parser.add_argument("--frames", type=int, default=100)
+    parser.add_argument("--random-frames", type=int, default=512)
+    parser.add_argument("--stability-frames", type=int, default=2000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    layer = BodyLayer.from_anny()
+    regions = vertex_regions(Rig.canonical())
+    finger = torch.tensor(["Hand" in n and not n.endswith("Hand") for n in layer.joint_names[1:]])
+    gen = torch.Generator().manual_seed(args.seed)
+    header = "| method | mean mm | median mm | max mm | frames/s | per region mean mm |\n|---|---:|---:|---:|---:|---|"
+
+    # -- random protocol (py-soma-x's) -------------------------------------------------------
+    params = torch.rand(1, 6, generator=gen)
+    prepared = layer.prepare_identity(params)
+    pose = 0.3 * torch.randn(args.random_frames, 77, 3, generator=gen)
+    transl = 0.1 * torch.randn(args.random_frames, 3, generator=gen)
+    with torch.no_grad():
+        target = layer.pose(prepared, pose, transl=transl).vertices
+    print(f"## random protocol: {args.random_frames} frames, 0.3 rad std, one identity, batch 64\n{header}")
+    for name, cfg in METHODS.items():
+        err, _, sec = run(layer, PoseInverter(layer, cfg), prepared, target)
+        report(name, err, sec, regions)
+
+    # -- smooth motions over many identities --------------------------------------------------
+    print(f"\n## smooth motions: {args.identities} identities x {args.frames} frames, batch 64\n{header}")
+    data = []
+    for _ in range(args.identities):
+        prepared = layer.prepare_identity(torch.rand(1, 6, generator=gen))
+        pose, transl = smooth_motion(args.frames, gen, finger)
+        with torch.no_grad():
+            data.append((prepared, layer.pose(prepared, pose.float(), transl=transl.float()).vertices))
+    for name, cfg in METHODS.items():
+        inverter = PoseInverter(layer, cfg)
+        errs, sec = [], 0.0
+        for prepared, target in data:
+            err, _, s = run(layer, inverter, prepared, target)
+            errs.append(err)
+            sec += s
+        report(name, torch.cat(errs), sec, regions)
+
+    # -- temporal stability --------------------------------------------------------------------
+    prepared = layer.prepare_identity(torch.rand(1, 6, generator=gen))
+    pose, transl = smooth_motion(args.stability_frames, gen, finger)
+    with torch.no_grad():
+        target = layer.pose(prepared, pose.float(), transl=transl.float()).vertices
+    truth = axis_angle_to_matrix(pose.float())
+    step_truth = rotation_angle(truth[1:].transpose(-1, -2) @ truth[:-1])
+    shoulder = torch.tensor([layer.joint_names.index(n) for n in ("LeftShoulder", "RightShoulder")])
+    dense = layer.skin_weight.new_zeros(layer.num_vertices, layer.num_joints)
+    dense[layer._skin_vertex, layer._skin_joint] = layer.skin_weight
+    shoulder_v = torch.isin(dense.argmax(1), shoulder)
+    observable = PoseInverter(layer).observable
+    print(f"\n## temporal stability: {args.stability_frames} smooth frames, one identity")
+    print("| method | shoulder error change mm/frame | max joint jump deg/frame (truth) |\n|---|---:|---:|")
+    for name in ("analytic (SVD)", "analytic (Newton-Schulz)"):
+        err, rots, _ = run(layer, PoseInverter(layer, METHODS[name]), prepared, target)
+        e = 1e3 * err[:, shoulder_v].mean(1)
+        jump = rotation_angle(rots[1:].transpose(-1, -2) @ rots[:-1])[:, observable]
+        deg = 180 / math.pi
+        print(f"| {name} | {(e[1:] - e[:-1]).abs().mean():.3f} | {deg * jump.max():.2f} "
+              f"({deg * step_truth[:, observable].max():.2f}) |")
+
+
+if __name__ == "__main__":
+    main()
