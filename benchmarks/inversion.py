@@ -4,10 +4,14 @@ Protocols (all data generated from seeds; nothing here is used for training):
   random   the py-soma-x protocol: random poses, 0.3 rad std axis-angle on every joint,
            0.1 m translation std; one Anny identity per batch of 64.
   smooth   a seeded smooth motion generator: per joint a sum of three sinusoids
-           (0.1-0.7 Hz, 30 fps) with amplitude 0.35 rad (fingers 0.2), over --identities
+           (0.1-0.5 Hz, 30 fps) with amplitude 0.35 rad (fingers 0.2), over --identities
            Anny identities x --frames frames each.
 For each method: mean / median / max per-vertex error (mm) against the BodyLayer mesh that
 produced the target, per region (body, hands, feet, head), and frames/s at batch 64.
+Cross-model (Table 2/3 analogue): Anny posed by its own 104-bone rig and skinning on its
+native 13,718-vertex mesh (smooth random local rotations about Anny's reference pose,
+0.25 rad amplitude, 0.1 for fingers, toes, face), given to the inverter on Anny's topology:
+it is transferred to the canonical mesh and inverted; errors are against that transfer.
 Temporal: on one smooth sequence of --stability-frames frames, the mean frame-to-frame
 change of the shoulder-region error (SVD vs Newton-Schulz) and the largest frame-to-frame
 rotation change of any observable joint, against that of the ground-truth motion.
@@ -40,7 +44,7 @@ METHODS = {
 def smooth_motion(frames: int, gen: torch.Generator, finger: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(T, 77, 3) smooth poses and (T, 3) translations at 30 fps."""
     t = torch.arange(frames, dtype=torch.float64)[:, None, None, None] / 30.0
-    freq = 0.1 + 0.6 * torch.rand(1, 77, 3, 3, generator=gen, dtype=torch.float64)
+    freq = 0.1 + 0.4 * torch.rand(1, 77, 3, 3, generator=gen, dtype=torch.float64)
     phase = 2 * math.pi * torch.rand(1, 77, 3, 3, generator=gen, dtype=torch.float64)
     amp = torch.where(finger[None, :, None, None], 0.2, 0.35) / math.sqrt(3)
     pose = (amp * torch.sin(2 * math.pi * freq * t + phase)).sum(-1)
@@ -76,6 +80,8 @@ def main() -> None:
     parser.add_argument("--stability-frames", type=int, default=2000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--cross-frames", type=int, default=100)
+    parser.add_argument("--sections", nargs="+", default=["random", "smooth", "cross", "stability"])
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     layer = BodyLayer.from_anny()
@@ -84,7 +90,18 @@ def main() -> None:
     gen = torch.Generator().manual_seed(args.seed)
     header = "| method | mean mm | median mm | max mm | frames/s | per region mean mm |\n|---|---:|---:|---:|---:|---|"
 
-    # -- random protocol (py-soma-x's) -------------------------------------------------------
+    if "random" in args.sections:
+        random_protocol(layer, regions, gen, args, header)
+    if "smooth" in args.sections:
+        smooth_protocol(layer, regions, finger, gen, args, header)
+    if "cross" in args.sections:
+        cross_model(layer, regions, gen, args, header)
+    if "stability" in args.sections:
+        stability(layer, finger, gen, args)
+
+
+def random_protocol(layer, regions, gen, args, header) -> None:
+    """py-soma-x's protocol: random poses, 0.3 rad std, 0.1 m translation std."""
     params = torch.rand(1, 6, generator=gen)
     prepared = layer.prepare_identity(params)
     pose = 0.3 * torch.randn(args.random_frames, 77, 3, generator=gen)
@@ -96,7 +113,10 @@ def main() -> None:
         err, _, sec = run(layer, PoseInverter(layer, cfg), prepared, target)
         report(name, err, sec, regions)
 
-    # -- smooth motions over many identities --------------------------------------------------
+
+
+def smooth_protocol(layer, regions, finger, gen, args, header) -> None:
+    """Smooth seeded motions over many identities."""
     print(f"\n## smooth motions: {args.identities} identities x {args.frames} frames, batch 64\n{header}")
     data = []
     for _ in range(args.identities):
@@ -113,7 +133,42 @@ def main() -> None:
             sec += s
         report(name, torch.cat(errs), sec, regions)
 
-    # -- temporal stability --------------------------------------------------------------------
+
+
+def cross_model(layer, regions, gen, args, header) -> None:
+    """Anny's native rig and skinning -> Anny topology -> canonical -> inversion."""
+    model = layer.identity.model
+    labels = list(model.bone_labels)
+    small = ("finger", "toe", "thumb", "eye", "tongue", "jaw", "metacarpal", "special", "breast")
+    amp = torch.tensor([0.1 if any(k in n.lower() for k in small) else 0.25 for n in labels], dtype=torch.float64)
+    frames = args.cross_frames
+    print(f"\n## cross-model: Anny native rig, {args.identities} identities x {frames} frames, batch 64\n{header}")
+    data = []
+    for _ in range(max(1, args.identities // 4)):
+        params = torch.rand(1, 6, generator=gen)
+        t = torch.arange(frames, dtype=torch.float64)[:, None, None, None] / 30.0
+        freq = 0.1 + 0.4 * torch.rand(1, len(labels), 3, 3, generator=gen, dtype=torch.float64)
+        phase = 2 * math.pi * torch.rand(1, len(labels), 3, 3, generator=gen, dtype=torch.float64)
+        aa = (amp[None, :, None, None] / math.sqrt(3) * torch.sin(2 * math.pi * freq * t + phase)).sum(-1)
+        delta = torch.eye(4, dtype=torch.float64).repeat(frames, len(labels), 1, 1)
+        delta[..., :3, :3] = axis_angle_to_matrix(aa)
+        with torch.no_grad():
+            native = model.double()(pose_parameters=delta, phenotype_kwargs=params.double())["vertices"]
+            model.float()
+            native = torch.stack([native[..., 0], native[..., 2], -native[..., 1]], -1).float()
+            data.append((layer.prepare_identity(params), native))
+    for name, cfg in METHODS.items():
+        inverter = PoseInverter(layer, cfg)
+        errs, sec = [], 0.0
+        for prepared, native in data:
+            err, _, s = run(layer, inverter, prepared, native)
+            errs.append(err)
+            sec += s
+        report(name, torch.cat(errs), sec, regions)
+
+
+def stability(layer, finger, gen, args) -> None:
+    """Frame-to-frame behaviour on one long smooth sequence."""
     prepared = layer.prepare_identity(torch.rand(1, 6, generator=gen))
     pose, transl = smooth_motion(args.stability_frames, gen, finger)
     with torch.no_grad():
