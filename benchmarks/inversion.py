@@ -142,9 +142,10 @@ def cross_model(layer, regions, gen, args, header) -> None:
     small = ("finger", "toe", "thumb", "eye", "tongue", "jaw", "metacarpal", "special", "breast")
     amp = torch.tensor([0.1 if any(k in n.lower() for k in small) else 0.25 for n in labels], dtype=torch.float64)
     frames = args.cross_frames
-    print(f"\n## cross-model: Anny native rig, {args.identities} identities x {frames} frames, batch 64\n{header}")
+    n_id = max(1, args.identities // 4)
+    print(f"\n## cross-model: Anny native rig, {n_id} identities x {frames} frames, batch 64\n{header}")
     data = []
-    for _ in range(max(1, args.identities // 4)):
+    for _ in range(n_id):
         params = torch.rand(1, 6, generator=gen)
         t = torch.arange(frames, dtype=torch.float64)[:, None, None, None] / 30.0
         freq = 0.1 + 0.4 * torch.rand(1, len(labels), 3, 3, generator=gen, dtype=torch.float64)
@@ -182,8 +183,14 @@ def stability(layer, finger, gen, args) -> None:
     observable = PoseInverter(layer).observable
     print(f"\n## temporal stability: {args.stability_frames} smooth frames, one identity")
     print("| method | shoulder error change mm/frame | max joint jump deg/frame (truth) |\n|---|---:|---:|")
-    for name in ("analytic (SVD)", "analytic (Newton-Schulz)"):
-        err, rots, _ = run(layer, PoseInverter(layer, METHODS[name]), prepared, target)
+    variants = {
+        "analytic (SVD), no damping": InversionConfig(orthogonalization="svd", damping=0.0),
+        "analytic (Newton-Schulz), no damping": InversionConfig(damping=0.0, ns_iters=30),
+        "analytic (SVD)": METHODS["analytic (SVD)"],
+        "analytic (Newton-Schulz)": METHODS["analytic (Newton-Schulz)"],
+    }
+    for name, cfg in variants.items():
+        err, rots, _ = run(layer, PoseInverter(layer, cfg), prepared, target)
         e = 1e3 * err[:, shoulder_v].mean(1)
         jump = rotation_angle(rots[1:].transpose(-1, -2) @ rots[:-1])[:, observable]
         deg = 180 / math.pi

@@ -12,10 +12,14 @@ def test_all_snapshot():
         "AnnyIdentity",
         "BodyLayer",
         "BodyOutput",
+        "InversionConfig",
+        "InversionResult",
         "JOINT_NAMES",
         "KinematicTree",
         "NUM_JOINTS",
         "NUM_POSED",
+        "PRESETS",
+        "PoseInverter",
         "PreparedIdentity",
         "Rig",
         "SkeletonTransfer",
@@ -36,6 +40,14 @@ def test_output_fields():
         "rest_rotations",
         "rest_joints",
         "offsets",
+    ]
+    assert [f.name for f in dataclasses.fields(unibody.InversionResult)] == [
+        "pose",
+        "rotations",
+        "transl",
+        "vertices",
+        "per_vertex_error",
+        "iterations",
     ]
 
 

@@ -6,6 +6,7 @@ rotations of joints 1..77, T-pose-relative by default (paper 001).
 
 from .body import BodyLayer, BodyOutput, PreparedIdentity
 from .identity import AnnyIdentity
+from .inversion import PRESETS, InversionConfig, InversionResult, PoseInverter
 from .rig import JOINT_NAMES, NUM_JOINTS, NUM_POSED, KinematicTree, Rig, joint_index
 from .skeleton import SkeletonTransfer
 from .topology import TopologyTransfer
@@ -14,10 +15,14 @@ __all__ = [
     "AnnyIdentity",
     "BodyLayer",
     "BodyOutput",
+    "InversionConfig",
+    "InversionResult",
     "JOINT_NAMES",
     "KinematicTree",
     "NUM_JOINTS",
     "NUM_POSED",
+    "PRESETS",
+    "PoseInverter",
     "PreparedIdentity",
     "Rig",
     "SkeletonTransfer",
