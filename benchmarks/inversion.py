@@ -36,6 +36,7 @@ METHODS = {
     "skeleton transfer": InversionConfig(method="skeleton"),
     "analytic (Newton-Schulz)": InversionConfig(),
     "analytic (SVD)": InversionConfig(orthogonalization="svd"),
+    "analytic + Gauss-Newton (3)": InversionConfig(gauss_newton_steps=3),
     "analytic + autograd (30)": InversionConfig(method="autograd", init="analytic", steps=30),
     "autograd, no init (30)": InversionConfig(method="autograd", init="none", steps=30),
 }
@@ -114,7 +115,6 @@ def random_protocol(layer, regions, gen, args, header) -> None:
         report(name, err, sec, regions)
 
 
-
 def smooth_protocol(layer, regions, finger, gen, args, header) -> None:
     """Smooth seeded motions over many identities."""
     print(f"\n## smooth motions: {args.identities} identities x {args.frames} frames, batch 64\n{header}")
@@ -132,7 +132,6 @@ def smooth_protocol(layer, regions, finger, gen, args, header) -> None:
             errs.append(err)
             sec += s
         report(name, torch.cat(errs), sec, regions)
-
 
 
 def cross_model(layer, regions, gen, args, header) -> None:
@@ -194,8 +193,10 @@ def stability(layer, finger, gen, args) -> None:
         e = 1e3 * err[:, shoulder_v].mean(1)
         jump = rotation_angle(rots[1:].transpose(-1, -2) @ rots[:-1])[:, observable]
         deg = 180 / math.pi
-        print(f"| {name} | {(e[1:] - e[:-1]).abs().mean():.3f} | {deg * jump.max():.2f} "
-              f"({deg * step_truth[:, observable].max():.2f}) |")
+        print(
+            f"| {name} | {(e[1:] - e[:-1]).abs().mean():.3f} | {deg * jump.max():.2f} "
+            f"({deg * step_truth[:, observable].max():.2f}) |"
+        )
 
 
 if __name__ == "__main__":

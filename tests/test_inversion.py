@@ -21,7 +21,7 @@ def case(anny_layer64):
     return layer, prepared, pose, transl, target
 
 
-@pytest.mark.parametrize(("preset", "mean_mm"), [("fast", 15.0), ("analytic", 3.0), ("svd", 3.0)])
+@pytest.mark.parametrize(("preset", "mean_mm"), [("fast", 15.0), ("analytic", 3.0), ("svd", 3.0), ("refined", 0.5)])
 def test_round_trip(case, preset, mean_mm):
     layer, prepared, pose, transl, target = case
     with torch.no_grad():

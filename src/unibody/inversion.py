@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from ._checks import check_finite, check_like, check_shape
+from ._gauss_newton import gauss_newton, gauss_newton_data
 from .body import BodyLayer, PreparedIdentity
 from .geometry.kinematics import forward_kinematics
 from .geometry.procrustes import newton_schulz, polar_svd
@@ -54,6 +55,8 @@ class InversionConfig:
         ns_iters: Newton-Schulz iterations per solve.
         vertices_per_joint: analytic solver: at most this many (seeded sample) vertices per
             joint's subtree enter its Procrustes fit.
+        gauss_newton_steps: Gauss-Newton steps over all joints after the analytic solve
+            (0: none), on ``gauss_newton_samples`` seeded sample vertices.
         damping: weight of "stay at the current rotation" relative to the data term; keeps
             near-coplanar vertex sets (clavicles) well posed.
         init: start of the autograd solver: "analytic", "skeleton" or "none" (T-pose).
@@ -68,6 +71,8 @@ class InversionConfig:
     full_passes: int = 1
     ns_iters: int = 16
     vertices_per_joint: int = 128
+    gauss_newton_steps: int = 0
+    gauss_newton_samples: int = 1500
     damping: float = 3e-3
     init: Init = "analytic"
     steps: int = 100
@@ -92,6 +97,7 @@ class InversionConfig:
 PRESETS: dict[str, InversionConfig] = {
     "fast": InversionConfig(method="skeleton"),
     "analytic": InversionConfig(),
+    "refined": InversionConfig(gauss_newton_steps=3),
     "svd": InversionConfig(orthogonalization="svd"),
     "accurate": InversionConfig(method="autograd", init="analytic", steps=100, region_weights=(1.0, 4.0, 2.0, 2.0)),
 }
@@ -138,6 +144,9 @@ class PoseInverter(nn.Module):
         dominant = self._dense_argmax(layer)
         cap = self.config.vertices_per_joint
         self._levels = {s: self._level_data(layer, dominant, skinned, finger, s, cap) for s in ("body", "full")}
+        self._gn = (
+            gauss_newton_data(layer, self.config.gauss_newton_samples) if self.config.gauss_newton_steps else None
+        )
         regions = joint_regions(names)[dominant]
         weights = torch.tensor(self.config.region_weights, dtype=layer.skin_weight.dtype)[regions]
         self.register_buffer("vertex_weight", weights / weights.mean(), persistent=False)
@@ -403,6 +412,11 @@ class PoseInverter(nn.Module):
         iterations = 0
         if cfg.method == "analytic" or (cfg.method == "autograd" and cfg.init == "analytic"):
             local, transl, iterations = self._analytic(prepared, target, local, transl)
+            if self._gn is not None:
+                local, transl = gauss_newton(
+                    self.layer, self._gn, prepared, target, local, transl, cfg.gauss_newton_steps
+                )
+                local = self._zero_unobservable(polar_svd(local))
         if cfg.method == "autograd":
             if cfg.init == "none":
                 local = self._zero_unobservable(local, keep=torch.zeros_like(self.observable))

@@ -1,0 +1,125 @@
+"""Gauss-Newton refinement of all joint rotations at once (used by :mod:`unibody.inversion`).
+
+Parameters per frame: the Hips translation and, for each skinned joint k, a world-frame
+rotation increment w_k about the joint's position g_k. Rotating joint k rigidly moves the
+part of every vertex that its subtree skins, so to first order
+
+    p_i(w, d) = p_i + d + sum_k w_k x q_ik,     q_ik = sum_{m in subtree(k)} w_im (M_m v_i - g_k),
+
+and the Jacobian block of vertex i and joint k is -[q_ik]_x. The normal equations are
+formed on a fixed seeded sample of vertices and solved per frame (Cholesky with a small
+Levenberg damping); increments are applied as local rotations R_k <- R_p^T exp(w_k) R_p R_k.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .geometry.rotations import axis_angle_to_matrix
+
+__all__ = ["GaussNewtonData", "gauss_newton_data", "gauss_newton"]
+
+
+@dataclass(frozen=True, eq=False)
+class GaussNewtonData:
+    """Index structure over sampled vertices (CPU int64 / float tensors).
+
+    Attributes:
+        verts: (N,) sampled vertices.
+        joints: (K,) solved (skinned) joints.
+        infl_vertex, infl_joint, infl_weight: (E,) influences of the sampled vertices
+            (vertex as position in ``verts``).
+        pair_vertex, pair_slot: (P,) (vertex position, joint slot in ``joints``) pairs with
+            a non-empty subtree part.
+        entry_pair, entry_infl: (Q,) which influence contributes to which pair.
+        pair_weight: (P,) sum of the pair's influence weights.
+    """
+
+    verts: torch.Tensor
+    joints: torch.Tensor
+    infl_vertex: torch.Tensor
+    infl_joint: torch.Tensor
+    infl_weight: torch.Tensor
+    pair_vertex: torch.Tensor
+    pair_slot: torch.Tensor
+    entry_pair: torch.Tensor
+    entry_infl: torch.Tensor
+    pair_weight: torch.Tensor
+
+
+def gauss_newton_data(layer, num_samples: int, seed: int = 0) -> GaussNewtonData:
+    """Sample vertices and build the (vertex, ancestor joint) incidence once per layer."""
+    parents = layer.rig_tree.parents
+    sv, sj, sw = (x.cpu() for x in (layer._skin_vertex, layer._skin_joint, layer.skin_weight))
+    skinned = torch.bincount(sj, minlength=layer.num_joints) > 0
+    joints = torch.nonzero(skinned).flatten()
+    slot = {int(j): i for i, j in enumerate(joints)}
+    gen = torch.Generator().manual_seed(seed)
+    verts = torch.randperm(layer.num_vertices, generator=gen)[:num_samples].sort().values
+    pos = torch.full((layer.num_vertices,), -1, dtype=torch.long)
+    pos[verts] = torch.arange(verts.numel())
+    keep = pos[sv] >= 0
+    iv, ij, iw = pos[sv[keep]], sj[keep], sw[keep]
+    ancestors = []
+    for m in range(layer.num_joints):
+        chain, a = [], m
+        while a > 0:
+            if a in slot:
+                chain.append(slot[a])
+            a = parents[a]
+        ancestors.append(chain)
+    pair_id: dict[tuple[int, int], int] = {}
+    entry_pair, entry_infl = [], []
+    for e, (v, m) in enumerate(zip(iv.tolist(), ij.tolist(), strict=True)):
+        for k in ancestors[m]:
+            p = pair_id.setdefault((v, k), len(pair_id))
+            entry_pair.append(p)
+            entry_infl.append(e)
+    pairs = torch.tensor(list(pair_id.keys()), dtype=torch.long)
+    entry_pair_t, entry_infl_t = torch.tensor(entry_pair), torch.tensor(entry_infl)
+    pair_weight = torch.zeros(len(pair_id), dtype=iw.dtype).index_add_(0, entry_pair_t, iw[entry_infl_t])
+    return GaussNewtonData(verts, joints, iv, ij, iw, pairs[:, 0], pairs[:, 1], entry_pair_t, entry_infl_t, pair_weight)
+
+
+def _skew(v: torch.Tensor) -> torch.Tensor:
+    z = torch.zeros_like(v[..., 0])
+    x, y, w = v.unbind(-1)
+    return torch.stack([z, -w, y, w, z, -x, -y, x, z], -1).unflatten(-1, (3, 3))
+
+
+def gauss_newton(layer, data: GaussNewtonData, prepared, target, local, transl, iters: int, damping: float = 1e-6):
+    """Refine absolute local rotations (B, J, 3, 3) and translation (B, 3) by ``iters`` steps."""
+    dev, dtype = target.device, target.dtype
+    d = {k: getattr(data, k).to(dev) for k in data.__dataclass_fields__}
+    n, k_count = d["verts"].numel(), d["joints"].numel()
+    rest = prepared.rest_vertices[:, d["verts"]]
+    tgt = target[:, d["verts"]]
+    weight = d["infl_weight"].to(dtype)
+    pair_weight = d["pair_weight"].to(dtype)
+    for _ in range(iters):
+        g_rot, g_pos, mats = layer.skin_transforms(prepared, local, transl)
+        b = mats.shape[0]
+        m = mats[:, d["infl_joint"]]
+        vh = rest[:, d["infl_vertex"]]
+        contrib = weight[:, None] * ((m[..., :3] @ vh[..., None]).squeeze(-1) + m[..., 3])  # (B, E, 3)
+        pred = contrib.new_zeros(b, n, 3).index_add_(1, d["infl_vertex"], contrib)
+        q = contrib.new_zeros(b, d["pair_slot"].numel(), 3).index_add_(1, d["entry_pair"], contrib[:, d["entry_infl"]])
+        q = q - pair_weight[:, None] * g_pos[:, d["joints"][d["pair_slot"]]]
+        jac = contrib.new_zeros(b, n, 3, 1 + k_count, 3)
+        jac[:, :, :, 0] = torch.eye(3, dtype=dtype, device=dev)
+        # Advanced indices split by a slice put the pair axis first: (P, B, 3, 3).
+        jac[:, d["pair_vertex"], :, 1 + d["pair_slot"]] = -_skew(q).transpose(0, 1)
+        jac = jac.reshape(b, 3 * n, 3 + 3 * k_count)
+        r = (tgt - pred).reshape(b, 3 * n, 1)
+        jtj = jac.transpose(1, 2) @ jac
+        scale = jtj.diagonal(dim1=1, dim2=2).mean(-1)[:, None, None]
+        jtj = jtj + damping * scale * torch.eye(jtj.shape[-1], dtype=dtype, device=dev)
+        step = torch.linalg.solve(jtj, jac.transpose(1, 2) @ r).squeeze(-1)
+        transl = transl + step[:, :3]
+        inc = axis_angle_to_matrix(step[:, 3:].view(b, k_count, 3))
+        gp = g_rot[:, layer.parents[d["joints"]]]
+        new = gp.transpose(-1, -2) @ inc @ gp @ local[:, d["joints"]]
+        local = local.index_copy(1, d["joints"], new)
+    return local, transl
