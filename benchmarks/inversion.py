@@ -67,6 +67,18 @@ def run(layer, inverter, prepared, target, batch: int = 64):
     return torch.cat(errs), torch.cat(rots), seconds
 
 
+def evaluate(layer, data, regions) -> None:
+    """Report every method over ``data``: a list of (prepared identity, target meshes)."""
+    for name, cfg in METHODS.items():
+        inverter = PoseInverter(layer, cfg)
+        errs, sec = [], 0.0
+        for prepared, target in data:
+            err, _, s = run(layer, inverter, prepared, target)
+            errs.append(err)
+            sec += s
+        report(name, torch.cat(errs), sec, regions)
+
+
 def report(name: str, err: torch.Tensor, seconds: float, regions: torch.Tensor) -> None:
     e = 1e3 * err
     per_region = "  ".join(f"{REGIONS[k]} {e[:, regions == k].mean():.2f}" for k in range(len(REGIONS)))
@@ -124,14 +136,7 @@ def smooth_protocol(layer, regions, finger, gen, args, header) -> None:
         pose, transl = smooth_motion(args.frames, gen, finger)
         with torch.no_grad():
             data.append((prepared, layer.pose(prepared, pose.float(), transl=transl.float()).vertices))
-    for name, cfg in METHODS.items():
-        inverter = PoseInverter(layer, cfg)
-        errs, sec = [], 0.0
-        for prepared, target in data:
-            err, _, s = run(layer, inverter, prepared, target)
-            errs.append(err)
-            sec += s
-        report(name, torch.cat(errs), sec, regions)
+    evaluate(layer, data, regions)
 
 
 def cross_model(layer, regions, gen, args, header) -> None:
@@ -157,14 +162,7 @@ def cross_model(layer, regions, gen, args, header) -> None:
             model.float()
             native = torch.stack([native[..., 0], native[..., 2], -native[..., 1]], -1).float()
             data.append((layer.prepare_identity(params), native))
-    for name, cfg in METHODS.items():
-        inverter = PoseInverter(layer, cfg)
-        errs, sec = [], 0.0
-        for prepared, native in data:
-            err, _, s = run(layer, inverter, prepared, native)
-            errs.append(err)
-            sec += s
-        report(name, torch.cat(errs), sec, regions)
+    evaluate(layer, data, regions)
 
 
 def stability(layer, finger, gen, args) -> None:

@@ -119,5 +119,6 @@ def test_cli_invert_and_pose_round_trip(tmp_path, anny_layer64):
     motion = load_motion(tmp_path / "motion.npz")
     assert motion.pose.shape == (3, 77, 3) and motion.identity_backend == "anny"
     assert main(["pose", str(tmp_path / "motion.npz"), "--out", str(tmp_path / "back.npz")]) == 0
+    assert torch.is_grad_enabled()  # the CLI must not switch gradients off for its caller
     back = np.load(tmp_path / "back.npz")["vertices"]
     assert np.linalg.norm(back - verts.numpy(), axis=-1).mean() < 0.004

@@ -90,7 +90,12 @@ def _skew(v: torch.Tensor) -> torch.Tensor:
 
 
 def gauss_newton(layer, data: GaussNewtonData, prepared, target, local, transl, iters: int, damping: float = 1e-6):
-    """Refine absolute local rotations (B, J, 3, 3) and translation (B, 3) by ``iters`` steps."""
+    """Refine absolute local rotations (B, J, 3, 3) and translation (B, 3) by ``iters`` steps.
+
+    Levenberg-Marquardt safeguard per frame: a step that does not lower the sampled
+    squared error is rejected and that frame's damping grows x10 (shrinks /3 on success), so
+    the error never increases and NaNs never enter the state.
+    """
     dev, dtype = target.device, target.dtype
     d = {k: getattr(data, k).to(dev) for k in data.__dataclass_fields__}
     n, k_count = d["verts"].numel(), d["joints"].numel()
@@ -98,13 +103,22 @@ def gauss_newton(layer, data: GaussNewtonData, prepared, target, local, transl, 
     tgt = target[:, d["verts"]]
     weight = d["infl_weight"].to(dtype)
     pair_weight = d["pair_weight"].to(dtype)
-    for _ in range(iters):
+    eye = torch.eye(3 + 3 * k_count, dtype=dtype, device=dev)
+
+    def evaluate(local, transl):
         g_rot, g_pos, mats = layer.skin_transforms(prepared, local, transl)
-        b = mats.shape[0]
         m = mats[:, d["infl_joint"]]
         vh = rest[:, d["infl_vertex"]]
         contrib = weight[:, None] * ((m[..., :3] @ vh[..., None]).squeeze(-1) + m[..., 3])  # (B, E, 3)
-        pred = contrib.new_zeros(b, n, 3).index_add_(1, d["infl_vertex"], contrib)
+        pred = contrib.new_zeros(mats.shape[0], n, 3).index_add_(1, d["infl_vertex"], contrib)
+        err = (tgt - pred).square().sum((1, 2))
+        return g_rot, g_pos, contrib, pred, torch.where(torch.isfinite(err), err, torch.inf)
+
+    state = evaluate(local, transl)
+    lam = torch.full((target.shape[0],), damping, dtype=dtype, device=dev)
+    for _ in range(iters):
+        g_rot, g_pos, contrib, pred, _ = state
+        b = contrib.shape[0]
         q = contrib.new_zeros(b, d["pair_slot"].numel(), 3).index_add_(1, d["entry_pair"], contrib[:, d["entry_infl"]])
         q = q - pair_weight[:, None] * g_pos[:, d["joints"][d["pair_slot"]]]
         jac = contrib.new_zeros(b, n, 3, 1 + k_count, 3)
@@ -112,14 +126,26 @@ def gauss_newton(layer, data: GaussNewtonData, prepared, target, local, transl, 
         # Advanced indices split by a slice put the pair axis first: (P, B, 3, 3).
         jac[:, d["pair_vertex"], :, 1 + d["pair_slot"]] = -_skew(q).transpose(0, 1)
         jac = jac.reshape(b, 3 * n, 3 + 3 * k_count)
-        r = (tgt - pred).reshape(b, 3 * n, 1)
         jtj = jac.transpose(1, 2) @ jac
-        scale = jtj.diagonal(dim1=1, dim2=2).mean(-1)[:, None, None]
-        jtj = jtj + damping * scale * torch.eye(jtj.shape[-1], dtype=dtype, device=dev)
-        step = torch.linalg.solve(jtj, jac.transpose(1, 2) @ r).squeeze(-1)
-        transl = transl + step[:, :3]
-        inc = axis_angle_to_matrix(step[:, 3:].view(b, k_count, 3))
+        scale = jtj.diagonal(dim1=1, dim2=2).mean(-1)
+        rhs = jac.transpose(1, 2) @ (tgt - pred).reshape(b, 3 * n, 1)
         gp = g_rot[:, layer.parents[d["joints"]]]
-        new = gp.transpose(-1, -2) @ inc @ gp @ local[:, d["joints"]]
-        local = local.index_copy(1, d["joints"], new)
+        done = torch.zeros_like(state[4], dtype=torch.bool)
+        for _ in range(4):  # retries reuse J^T J: only the 3x3-block solve and a sampled LBS repeat
+            step, info = torch.linalg.solve_ex(jtj + (lam * scale)[:, None, None] * eye, rhs)
+            step = torch.where((info == 0)[:, None], step.squeeze(-1), torch.zeros_like(step.squeeze(-1)))
+            inc = axis_angle_to_matrix(step[:, 3:].view(b, k_count, 3))
+            cand_local = local.index_copy(1, d["joints"], gp.transpose(-1, -2) @ inc @ gp @ local[:, d["joints"]])
+            cand_transl = transl + step[:, :3]
+            cand = evaluate(cand_local, cand_transl)
+            ok = (cand[4] < state[4]) & ~done
+            local = torch.where(ok[:, None, None, None], cand_local, local)
+            transl = torch.where(ok[:, None], cand_transl, transl)
+            state = tuple(
+                torch.where(ok.view(-1, *[1] * (c.dim() - 1)), c, s) for c, s in zip(cand, state, strict=True)
+            )
+            lam = torch.where(ok, lam / 3, torch.where(done, lam, lam * 10))
+            done = done | ok
+            if bool(done.all()):
+                break
     return local, transl

@@ -171,15 +171,15 @@ def main(argv: list[str] | None = None) -> int:
     pose.add_argument("motion", type=Path)
     pose.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
-    torch.set_grad_enabled(False)
-    if args.command == "demo":
-        run_demo(args.out)
-    elif args.command == "assets":
-        _assets_info()
-    elif args.command == "invert":
-        run_invert(args.sequence, args.out, args.preset, args.batch)
-    elif args.command == "pose":
-        run_pose(args.motion, args.out)
+    with torch.no_grad():  # a context, not a global switch: callers (tests) keep their state
+        if args.command == "demo":
+            run_demo(args.out)
+        elif args.command == "assets":
+            _assets_info()
+        elif args.command == "invert":
+            run_invert(args.sequence, args.out, args.preset, args.batch)
+        elif args.command == "pose":
+            run_pose(args.motion, args.out)
     return 0
 
 
