@@ -132,8 +132,11 @@ def gauss_newton(layer, data: GaussNewtonData, prepared, target, local, transl, 
         gp = g_rot[:, layer.parents[d["joints"]]]
         done = torch.zeros_like(state[4], dtype=torch.bool)
         for _ in range(4):  # retries reuse J^T J: only the 3x3-block solve and a sampled LBS repeat
-            step, info = torch.linalg.solve_ex(jtj + (lam * scale)[:, None, None] * eye, rhs)
-            step = torch.where((info == 0)[:, None], step.squeeze(-1), torch.zeros_like(step.squeeze(-1)))
+            # Cholesky: J^T J + lambda I is SPD. (Batched LU, torch.linalg.solve, fails on this
+            # shape under torch.set_num_threads(2) with MKL: "Pivots given to lu_solve...".)
+            chol, info = torch.linalg.cholesky_ex(jtj + (lam * scale)[:, None, None] * eye)
+            step = torch.cholesky_solve(rhs, chol).squeeze(-1)
+            step = torch.where((info == 0)[:, None] & torch.isfinite(step), step, torch.zeros_like(step))
             inc = axis_angle_to_matrix(step[:, 3:].view(b, k_count, 3))
             cand_local = local.index_copy(1, d["joints"], gp.transpose(-1, -2) @ inc @ gp @ local[:, d["joints"]])
             cand_transl = transl + step[:, :3]
