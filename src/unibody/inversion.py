@@ -232,9 +232,12 @@ class PoseInverter(nn.Module):
                 f"vertices: expected {' or '.join(f'{k} ({v})' for k, v in accepted.items())} "
                 f"vertices per mesh, got {n}"
             )
-        centred = vertices - vertices.mean(1, keepdim=True)
-        ev = torch.linalg.eigvalsh(centred.transpose(1, 2) @ centred)
-        flat = ev[:, 0] <= 1e-10 * ev.sum(-1).clamp_min(torch.finfo(ev.dtype).tiny)
+        mean = vertices.mean(1)
+        cov = vertices.transpose(1, 2) @ vertices / n - mean[:, :, None] * mean[:, None, :]
+        ev = torch.linalg.eigvalsh(cov)
+        # Uncentred moments round at ~eps relative to the spread: a body's thinnest axis is
+        # ~1e-2 of the trace, a plane's is 0, so 100 eps separates them in float32 and float64.
+        flat = ev[:, 0] <= 100 * torch.finfo(ev.dtype).eps * ev.sum(-1).clamp_min(torch.finfo(ev.dtype).tiny)
         if bool(flat.any()):
             b = int(torch.nonzero(flat)[0])
             raise ValueError(
@@ -248,7 +251,7 @@ class PoseInverter(nn.Module):
     # -- solvers ------------------------------------------------------------------------
     def _skeleton_init(self, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Absolute local rotations (B, J, 3, 3) and Hips position (B, 3) from SkeletonTransfer."""
-        frames, joints = self.layer.skeleton(target)
+        frames, joints = self.layer.skeleton.fit(target)
         parents = self.layer.parents
         local = frames[:, parents].transpose(-1, -2) @ frames
         local = torch.cat([frames[:, :1], local[:, 1:]], dim=1)
@@ -374,7 +377,7 @@ class PoseInverter(nn.Module):
         layer = self.layer
         target = self._canonical(vertices)
         b = target.shape[0]
-        frames, joints = layer.skeleton(target)
+        frames, joints = layer.skeleton.fit(target)
         parents = layer.parents
         offsets = (frames[:, parents].transpose(-1, -2) @ (joints - joints[:, parents])[..., None]).squeeze(-1)
         offsets = torch.cat([offsets[:, :1], joints[:, 1:2], offsets[:, 2:]], dim=1)

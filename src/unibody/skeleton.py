@@ -145,6 +145,10 @@ class SkeletonTransfer(nn.Module):
         check_shape(vertices, f"B {self.num_vertices} 3", name="vertices")
         check_like(vertices, self.bind_pos, name="vertices", owner="the skeleton transfer")
         check_finite(vertices, "vertices")
+        return self.fit(vertices)
+
+    def fit(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward` without input checks, for callers that validated ``vertices``."""
         out = self._apply_operator(vertices)
         joints = out[:, : self.num_joints]
         r_init = self._init_rotations(out[:, self.num_joints :].unflatten(1, (self.num_joints, 4)), joints)
