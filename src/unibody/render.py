@@ -339,40 +339,168 @@ def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.power(np.clip(c, 0, 1), 2.2)
 
 
-def _linear_to_srgb(c: np.ndarray) -> np.ndarray:
-    return np.power(np.clip(c, 0, 1), 1 / 2.2)
+_LUT_SIZE = 1 << 14
+_SRGB_LUT = (np.power(np.linspace(0.0, 1.0, _LUT_SIZE), 1 / 2.2) * 255 + 0.5).astype(np.uint8)
+
+
+def _linear_to_srgb8(c: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] floats to sRGB-ish (gamma 2.2) uint8 through a lookup table."""
+    idx = np.clip(c, 0.0, 1.0)
+    idx *= _LUT_SIZE - 1
+    idx += 0.5
+    return _SRGB_LUT[idx.astype(np.uint16)]
 
 
 def _contact_shadow(meshes: Sequence[MeshSpec], ground_y: float) -> tuple[np.ndarray, np.ndarray, float]:
     """A soft darkening map on the ground: ``(map (Nz, Nx) in [0, 1], origin (x, z), cell)``."""
     pts = np.concatenate([m.vertices for m in meshes if len(m.vertices)])
     height = pts[:, 1] - ground_y
-    pts = pts[height > -0.05]
-    height = height[height > -0.05]
+    keep = height > -0.05
+    pts, height = pts[keep], height[keep]
     cell = 0.01
     pad = 0.6
+    if len(pts) == 0:
+        return np.zeros((2, 2), dtype=np.float32), np.zeros(2), cell
     lo = pts[:, [0, 2]].min(axis=0) - pad
     hi = pts[:, [0, 2]].max(axis=0) + pad
     nx, nz = (np.ceil((hi - lo) / cell).astype(int) + 1).tolist()
     if nx * nz > 4_000_000:  # very large scenes: coarser grid
         cell *= math.sqrt(nx * nz / 4_000_000)
         nx, nz = (np.ceil((hi - lo) / cell).astype(int) + 1).tolist()
-    ix = ((pts[:, 0] - lo[0]) / cell).astype(int)
-    iz = ((pts[:, 2] - lo[1]) / cell).astype(int)
+    ix = np.clip(((pts[:, 0] - lo[0]) / cell).astype(int), 0, nx - 1)
+    iz = np.clip(((pts[:, 2] - lo[1]) / cell).astype(int), 0, nz - 1)
     flat = iz * nx + ix
 
     def blurred(weights: np.ndarray, sigma_m: float) -> np.ndarray:
         occ = np.zeros(nx * nz)
         np.maximum.at(occ, flat, weights)
         img = Image.fromarray((occ.reshape(nz, nx) * 255).astype(np.uint8), mode="L")
+        # Vertices are sparse at this resolution: dilate by ~2 cm, then blur.
+        img = img.filter(ImageFilter.MaxFilter(2 * max(1, round(0.02 / cell)) + 1))
         img = img.filter(ImageFilter.GaussianBlur(radius=max(sigma_m / cell, 0.5)))
-        return np.asarray(img, dtype=np.float64) / 255
+        return np.asarray(img, dtype=np.float32) / 255
 
     # Broad occlusion under the whole body, stronger for low parts; tight contact near the floor.
-    broad = blurred(np.exp(-np.maximum(height, 0) / 0.6), 0.08)
-    contact = blurred((height < 0.04).astype(np.float64), 0.015)
-    shadow = np.clip(0.45 * broad + 0.45 * contact, 0, 0.75)
+    broad = blurred(np.exp(-np.maximum(height, 0) / 0.4), 0.07)
+    contact = blurred((height < 0.025).astype(np.float64), 0.02)
+    shadow = np.clip(0.4 * broad + 0.45 * contact, 0, 0.75)
+    shadow[0, :] = shadow[-1, :] = shadow[:, 0] = shadow[:, -1] = 0  # clamp lookups outside to "no shadow"
     return shadow, lo, cell
+
+
+def _shade(
+    meshes: list[MeshSpec], camera: Camera, W: int, H: int, cull: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rasterise and shade; returns covered pixel indices, their linear RGB and depth."""
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes])
+    verts = np.concatenate([m.vertices for m in meshes])
+    faces = (
+        np.concatenate([m.faces + o for m, o in zip(meshes, offsets[:-1], strict=True)]).astype(np.int64).reshape(-1, 3)
+    )
+    face_mesh = np.repeat(np.arange(len(meshes)), [len(m.faces) for m in meshes])
+    normals = np.concatenate([vertex_normals(m.vertices, m.faces) for m in meshes])
+    colors = _srgb_to_linear(np.array([m.color for m in meshes], dtype=np.float64)).astype(np.float32)
+
+    right, up, fwd = camera.basis()
+    eye = np.asarray(camera.eye, dtype=np.float64)
+    scr = project(camera, verts, W, H)
+    s = _setup(scr, faces, W, H, cull)
+    if len(s.fid) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3), dtype=np.float32), np.zeros(0, dtype=np.float32)
+    zs = scr[faces[s.fid], 2]
+    iz_lo, iz_hi = float(1 / zs.max()), float(1 / zs.min())
+    zbuf = _zpass(s, W, H, iz_lo, iz_hi)
+    pix = np.flatnonzero(zbuf != _EMPTY)
+    gface = (zbuf[pix] & 0xFFFFFFFF).astype(np.int64)  # global face id
+    del zbuf
+    f = faces[gface]
+    # Recompute barycentrics (float64) of the winning face at each pixel centre.
+    dx = (pix % W) + 0.5 - scr[f[:, 2], 0]
+    dy = (pix // W) + 0.5 - scr[f[:, 2], 1]
+    c = s.coef[np.searchsorted(s.fid, gface)]
+    l0 = np.clip(c[:, 0, 0] * dx + c[:, 0, 1] * dy, 0, 1)
+    l1 = np.clip(c[:, 1, 0] * dx + c[:, 1, 1] * dy, 0, 1 - l0)
+    iz = 1 / scr[f, 2]
+    wts = np.stack([l0, l1, 1 - l0 - l1], axis=1) * iz  # perspective-correct weights
+    izp = wts.sum(axis=1)
+    wts = (wts / izp[:, None]).astype(np.float32)
+    depth = (1 / izp).astype(np.float32)
+    nf = normals.astype(np.float32)[f]
+    n = wts[:, 0, None] * nf[:, 0] + wts[:, 1, None] * nf[:, 1] + wts[:, 2, None] * nf[:, 2]
+    n /= np.maximum(np.sqrt(np.einsum("pd,pd->p", n, n)), 1e-12)[:, None]
+    vf = verts[f]
+    pos = wts[:, 0, None] * vf[:, 0] + wts[:, 1, None] * vf[:, 1] + wts[:, 2, None] * vf[:, 2]
+    vdir = (eye - pos).astype(np.float32)
+    vdir /= np.sqrt(np.einsum("pd,pd->p", vdir, vdir))[:, None]
+    ndv = np.einsum("pd,pd->p", n, vdir)
+    if not cull:
+        flip = ndv < 0
+        n[flip] *= -1
+        ndv[flip] *= -1
+    # Lights fixed to the camera: key from the upper left, weak fill from the right.
+    key = -0.55 * right + 0.75 * up - 0.55 * fwd
+    key = (key / np.linalg.norm(key)).astype(np.float32)
+    fill = 0.7 * right + 0.05 * up - 0.7 * fwd
+    fill = (fill / np.linalg.norm(fill)).astype(np.float32)
+    ndl = np.clip(n @ key, 0, None)
+    ndf = np.clip(n @ fill, 0, None)
+    ambient = 0.10 + 0.07 * (1 + n[:, 1])  # hemispheric: brighter facing the sky
+    half = vdir + key
+    half /= np.sqrt(np.einsum("pd,pd->p", half, half))[:, None]
+    spec = 0.06 * np.clip(np.einsum("pd,pd->p", n, half), 0, 1) ** 24 * (ndl > 0)
+    rim = 0.10 * (1 - np.clip(ndv, 0, 1)) ** 3  # separates silhouettes from the background
+    light = ambient + 0.85 * ndl + 0.22 * ndf + rim
+    rgb = colors[face_mesh[gface]] * light[:, None] + spec[:, None]
+    return pix, rgb.astype(np.float32), depth
+
+
+def _ground(
+    camera: Camera, W: int, H: int, ground_y: float, meshes: Sequence[MeshSpec], bg_rows: np.ndarray
+) -> tuple[int, np.ndarray, np.ndarray] | None:
+    """Ground plane for rows ``r0:``: ``(r0, rgb (h, W, 3), depth (h, W) with inf where missed)``."""
+    right, up, fwd = camera.basis()
+    eye = np.asarray(camera.eye, dtype=np.float64)
+    if eye[1] <= ground_y:
+        return None
+    f = camera.focal_px(H)
+    # Ray per pixel: eye + t * (fwd + xn * right + yn * up), t = depth along fwd.
+    yn = ((np.arange(H) + 0.5 - 0.5 * H) / -f).astype(np.float32)
+    xn = ((np.arange(W) + 0.5 - 0.5 * W) / f).astype(np.float32)
+    row_max = fwd[1] + yn * up[1] + np.maximum(xn[0] * right[1], xn[-1] * right[1])
+    rows = np.flatnonzero(row_max < 0)
+    if len(rows) == 0:
+        return None
+    r0 = int(rows[0])
+    yn = yn[r0:, None]
+    xn = xn[None, :]
+    dir_y = np.float32(fwd[1]) + xn * np.float32(right[1]) + yn * np.float32(up[1])  # (h, W)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.float32(ground_y - eye[1]) / dir_y
+    t[~(dir_y < 0)] = np.inf
+    with np.errstate(invalid="ignore"):
+        gx = eye[0] + t * (fwd[0] + xn * right[0] + yn * up[0])
+        gz = eye[2] + t * (fwd[2] + xn * right[2] + yn * up[2])
+    gx = np.nan_to_num(gx, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+    gz = np.nan_to_num(gz, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+    scene_dist = float(np.linalg.norm(eye - np.asarray(camera.target, dtype=np.float64)))
+    tn = np.minimum(t, 1e6) / np.float32(scene_dist)
+    # Subtle checker of 0.5 m tiles, faded with distance to avoid moire.
+    checker = (np.floor(gx * 2) + np.floor(gz * 2)) % 2 - 0.5
+    tone = 1 + 0.07 * checker * np.exp(-((tn / 2) ** 2))
+    # Soft contact shadow looked up in a top-down map.
+    shadow, origin, cell = _contact_shadow(meshes, ground_y)
+    u = np.clip((gx - np.float32(origin[0])) / np.float32(cell), 0, shadow.shape[1] - 1.001)
+    v = np.clip((gz - np.float32(origin[1])) / np.float32(cell), 0, shadow.shape[0] - 1.001)
+    iu, iv = u.astype(np.int32), v.astype(np.int32)
+    fu, fv = u - iu, v - iv
+    top = shadow[iv, iu] * (1 - fu) + shadow[iv, iu + 1] * fu
+    bottom = shadow[iv + 1, iu] * (1 - fu) + shadow[iv + 1, iu + 1] * fu
+    tone *= 1 - (top * (1 - fv) + bottom * fv)
+    # Fog toward the background colour with distance.
+    fog = 1 - np.exp(-((tn / 3.5) ** 2))
+    ground = _srgb_to_linear(_GROUND).astype(np.float32)
+    rgb = (tone * (1 - fog))[..., None] * ground + fog[..., None] * bg_rows[r0:, None, :]
+    return r0, rgb.astype(np.float32), t
 
 
 def render_image(
@@ -391,7 +519,8 @@ def render_image(
     ``camera`` overrides the automatic framing chosen by ``view``.  ``ground_y``
     places a ground plane at that height (``None``: no ground).  ``supersample``
     renders at that many times the size and downsamples with LANCZOS
-    (``1``: no anti-aliasing).
+    (``1``: no anti-aliasing).  Meshes are expected to wind counter-clockwise
+    seen from outside; pass ``cull_backfaces=False`` for meshes that do not.
     """
     meshes = _check_meshes(meshes)
     if int(width) != width or width < 1 or int(height) != height or height < 1:
@@ -407,137 +536,30 @@ def render_image(
         raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
     W, H = width * supersample, height * supersample
 
-    # Scene arrays.
-    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes])
-    verts = np.concatenate([m.vertices for m in meshes])
-    faces = (
-        np.concatenate([m.faces + o for m, o in zip(meshes, offsets[:-1], strict=True)]) if meshes else np.zeros((0, 3))
-    )
-    faces = faces.astype(np.int64).reshape(-1, 3)
-    face_mesh = np.repeat(np.arange(len(meshes)), [len(m.faces) for m in meshes])
-    normals = np.concatenate([vertex_normals(m.vertices, m.faces) for m in meshes])
-    colors = _srgb_to_linear(np.array([m.color for m in meshes], dtype=np.float64))
-
-    right, up, fwd = camera.basis()
-    eye = np.asarray(camera.eye, dtype=np.float64)
-    scr = project(camera, verts, W, H)
-    s = _setup(scr, faces, W, H, cull_backfaces)
-
-    depth = np.full(W * H, np.inf)
-    img = np.empty((W * H, 3))
-    covered = np.zeros(W * H, dtype=bool)
-    if len(s.fid):
-        zs = scr[faces[s.fid], 2]
-        iz_lo, iz_hi = float(1 / zs.max()), float(1 / zs.min())
-        zbuf = _zpass(s, W, H, iz_lo, iz_hi)
-        pix = np.flatnonzero(zbuf != _EMPTY)
-        covered[pix] = True
-        gface = (zbuf[pix] & 0xFFFFFFFF).astype(np.int64)  # global face id
-        f = faces[gface]
-        px = (pix % W) + 0.5
-        py = (pix // W) + 0.5
-        dx = px - scr[f[:, 2], 0]
-        dy = py - scr[f[:, 2], 1]
-        # Recompute barycentrics (float64) of the winning face at each pixel.
-        sid = np.searchsorted(s.fid, gface)
-        c = s.coef[sid]
-        l0 = c[:, 0, 0] * dx + c[:, 0, 1] * dy
-        l1 = c[:, 1, 0] * dx + c[:, 1, 1] * dy
-        l0 = np.clip(l0, 0, 1)
-        l1 = np.clip(l1, 0, 1 - l0)
-        l2 = 1 - l0 - l1
-        iz = 1 / scr[f, 2]
-        wts = np.stack([l0, l1, l2], axis=1) * iz
-        izp = wts.sum(axis=1)
-        wts /= izp[:, None]
-        depth[pix] = 1 / izp
-        n = np.einsum("pk,pkd->pd", wts, normals[f])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        # View vector (surface -> eye) and lights defined relative to the camera.
-        pos = np.einsum("pk,pkd->pd", wts, verts[f])
-        vdir = eye - pos
-        vdir /= np.linalg.norm(vdir, axis=1, keepdims=True)
-        if not cull_backfaces:
-            flip = np.einsum("pd,pd->p", n, vdir) < 0
-            n[flip] *= -1
-        key = -0.55 * right + 0.75 * up - 0.55 * fwd
-        key /= np.linalg.norm(key)
-        fill = 0.7 * right + 0.05 * up - 0.7 * fwd
-        fill /= np.linalg.norm(fill)
-        ndl = np.clip(n @ key, 0, None)
-        ndf = np.clip(n @ fill, 0, None)
-        hemi = 0.5 + 0.5 * n[:, 1]  # 1 facing the sky, 0 facing the ground
-        ambient = 0.10 + 0.14 * hemi
-        half = key + vdir
-        half /= np.linalg.norm(half, axis=1, keepdims=True)
-        spec = 0.06 * np.clip(np.einsum("pd,pd->p", n, half), 0, 1) ** 24 * (ndl > 0)
-        # Gentle rim to separate silhouettes from the background.
-        rim = 0.10 * (1 - np.clip(np.einsum("pd,pd->p", n, vdir), 0, 1)) ** 3
-        light = ambient + 0.85 * ndl + 0.22 * ndf + rim
-        img[pix] = colors[face_mesh[gface]] * light[:, None] + spec[:, None]
-
-    # Background gradient (linear space).
     t_rows = np.linspace(0, 1, H)[:, None]
-    bg_rows = _srgb_to_linear(_BG_TOP * (1 - t_rows) + _BG_BOTTOM * t_rows)  # (H, 3)
-    bg = np.repeat(bg_rows, W, axis=0)
-    img[~covered] = bg[~covered]
+    bg_rows = _srgb_to_linear(_BG_TOP * (1 - t_rows) + _BG_BOTTOM * t_rows).astype(np.float32)  # (H, 3)
+    img = np.empty((H, W, 3), dtype=np.float32)
+    img[:] = bg_rows[:, None, :]
 
-    if ground_y is not None and eye[1] > ground_y:
-        _ground(img, depth, camera, W, H, ground_y, meshes, bg)
+    pix, rgb, depth = _shade(meshes, camera, W, H, cull_backfaces)
 
-    out = (_linear_to_srgb(img.reshape(H, W, 3)) * 255 + 0.5).astype(np.uint8)
+    ground = _ground(camera, W, H, ground_y, meshes, bg_rows) if ground_y is not None else None
+    if ground is not None:
+        r0, g_rgb, g_t = ground
+        hit = np.isfinite(g_t)
+        np.copyto(img[r0:], g_rgb, where=hit[..., None])
+        # Mesh fragments behind the ground plane lose.
+        rel = pix - r0 * W
+        below = rel >= 0
+        front = np.ones(len(pix), dtype=bool)
+        front[below] = depth[below] <= g_t.ravel()[rel[below]]
+        pix, rgb = pix[front], rgb[front]
+    img.reshape(-1, 3)[pix] = rgb
+
+    out = _linear_to_srgb8(img)
     if supersample > 1:
         out = np.asarray(Image.fromarray(out, mode="RGB").resize((width, height), Image.Resampling.LANCZOS))
     return out
-
-
-def _ground(
-    img: np.ndarray,
-    depth: np.ndarray,
-    camera: Camera,
-    W: int,
-    H: int,
-    ground_y: float,
-    meshes: Sequence[MeshSpec],
-    bg: np.ndarray,
-) -> None:
-    """Composite the ground plane in place wherever it is nearer than the meshes."""
-    right, up, fwd = camera.basis()
-    eye = np.asarray(camera.eye, dtype=np.float64)
-    f = camera.focal_px(H)
-    # Ray per pixel: eye + t * (fwd + xn * right + yn * up), t = depth along fwd.
-    yn = (np.arange(H) + 0.5 - 0.5 * H) / -f
-    xn = (np.arange(W) + 0.5 - 0.5 * W) / f
-    dir_y = fwd[1] + xn[None, :] * right[1] + yn[:, None] * up[1]  # (H, W)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (ground_y - eye[1]) / dir_y
-    hit = (dir_y < 0) & (t < depth.reshape(H, W))
-    pixel = np.flatnonzero(hit.ravel())
-    if len(pixel) == 0:
-        return
-    tt = t.ravel()[pixel]
-    px, py = pixel % W, pixel // W
-    dd = fwd[None, :] + xn[px, None] * right[None, :] + yn[py, None] * up[None, :]
-    gx = eye[0] + tt * dd[:, 0]
-    gz = eye[2] + tt * dd[:, 2]
-    # Subtle checker, 0.5 m tiles, faded with distance to avoid moire.
-    tile = 0.5
-    checker = ((np.floor(gx / tile) + np.floor(gz / tile)) % 2) * 2 - 1
-    scene_dist = np.linalg.norm(eye - np.asarray(camera.target, dtype=np.float64))
-    fade = np.exp(-((tt / (2.0 * scene_dist)) ** 2))
-    base = _srgb_to_linear(_GROUND)[None, :] * (1 + 0.035 * checker * fade)[:, None]
-    # Contact shadow.
-    shadow, origin, cell = _contact_shadow(meshes, ground_y)
-    sx = np.clip(((gx - origin[0]) / cell).astype(int), 0, shadow.shape[1] - 1)
-    sz = np.clip(((gz - origin[1]) / cell).astype(int), 0, shadow.shape[0] - 1)
-    inside = (gx >= origin[0]) & (gz >= origin[1]) & (sx < shadow.shape[1] - 1) & (sz < shadow.shape[0] - 1)
-    dark = np.where(inside, shadow[sz, sx], 0.0)
-    col = base * (1 - dark)[:, None]
-    # Fog toward the background colour with distance.
-    fog = 1 - np.exp(-((tt / (3.5 * scene_dist)) ** 2))
-    col = col * (1 - fog)[:, None] + bg[pixel] * fog[:, None]
-    img[pixel] = col
-    depth[pixel] = tt
 
 
 def render_png(
