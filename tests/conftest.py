@@ -85,6 +85,22 @@ def chain_rig(num_joints: int = 5, rings: int = 4, per_ring: int = 6, seed: int 
     )
 
 
+def icosahedron() -> tuple[np.ndarray, np.ndarray]:
+    """The unit icosahedron: 12 vertices, 20 outward-facing triangles."""
+    t = (1 + 5**0.5) / 2
+    v = np.array(
+        [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+         [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]],
+        dtype=np.float64,
+    )  # fmt: skip
+    f = np.array(
+        [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+         [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+         [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
+    )  # fmt: skip
+    return v / np.linalg.norm(v, axis=1, keepdims=True), f
+
+
 @pytest.fixture(scope="session")
 def small_rig() -> Rig:
     return chain_rig()
