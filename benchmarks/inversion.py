@@ -30,7 +30,7 @@ import torch
 from unibody import BodyLayer, Rig
 from unibody.geometry.rotations import axis_angle_to_matrix, rotation_angle
 from unibody.inversion import InversionConfig, PoseInverter
-from unibody.regions import REGIONS, vertex_regions
+from unibody.regions import REGIONS, dominant_joints, vertex_regions
 
 METHODS = {
     "skeleton transfer": InversionConfig(method="skeleton"),
@@ -174,9 +174,10 @@ def stability(layer, finger, gen, args) -> None:
     truth = axis_angle_to_matrix(pose.float())
     step_truth = rotation_angle(truth[1:].transpose(-1, -2) @ truth[:-1])
     shoulder = torch.tensor([layer.joint_names.index(n) for n in ("LeftShoulder", "RightShoulder")])
-    dense = layer.skin_weight.new_zeros(layer.num_vertices, layer.num_joints)
-    dense[layer._skin_vertex, layer._skin_joint] = layer.skin_weight
-    shoulder_v = torch.isin(dense.argmax(1), shoulder)
+    dominant = dominant_joints(
+        layer._skin_vertex, layer._skin_joint, layer.skin_weight, layer.num_vertices, layer.num_joints
+    )
+    shoulder_v = torch.isin(dominant, shoulder)
     observable = PoseInverter(layer).observable
     print(f"\n## temporal stability: {args.stability_frames} smooth frames, one identity")
     print("| method | shoulder error change mm/frame | max joint jump deg/frame (truth) |\n|---|---:|---:|")

@@ -35,7 +35,7 @@ from .geometry.procrustes import newton_schulz, polar_svd
 from .geometry.rotations import matrix_to_axis_angle, matrix_to_rot6d, rot6d_to_matrix
 from .geometry.skinning import lbs_sparse, skin_layout
 from .geometry.sparse import csr
-from .regions import REGIONS, joint_regions
+from .regions import REGIONS, dominant_joints, joint_regions
 
 __all__ = ["InversionConfig", "InversionResult", "PoseInverter", "PRESETS"]
 
@@ -141,7 +141,9 @@ class PoseInverter(nn.Module):
         self.register_buffer("observable", skinned[1:].clone(), persistent=False)
         names = layer.joint_names
         finger = ["Hand" in n and not n.endswith("Hand") for n in names]
-        dominant = self._dense_argmax(layer)
+        dominant = dominant_joints(
+            layer._skin_vertex, layer._skin_joint, layer.skin_weight, layer.num_vertices, layer.num_joints
+        )
         cap = self.config.vertices_per_joint
         self._levels = {s: self._level_data(layer, dominant, skinned, finger, s, cap) for s in ("body", "full")}
         self._gn = (
@@ -150,12 +152,6 @@ class PoseInverter(nn.Module):
         regions = joint_regions(names)[dominant]
         weights = torch.tensor(self.config.region_weights, dtype=layer.skin_weight.dtype)[regions]
         self.register_buffer("vertex_weight", weights / weights.mean(), persistent=False)
-
-    @staticmethod
-    def _dense_argmax(layer: BodyLayer) -> torch.Tensor:
-        dense = layer.skin_weight.new_zeros(layer.num_vertices, layer.num_joints)
-        dense[layer._skin_vertex, layer._skin_joint] = layer.skin_weight
-        return dense.argmax(1).cpu()
 
     @staticmethod
     def _level_data(

@@ -10,7 +10,7 @@ import torch
 
 from .rig import Rig
 
-__all__ = ["REGIONS", "joint_regions", "vertex_regions"]
+__all__ = ["REGIONS", "dominant_joints", "joint_regions", "vertex_regions"]
 
 REGIONS: tuple[str, ...] = ("body", "hands", "feet", "head")
 
@@ -30,7 +30,16 @@ def joint_regions(joint_names: tuple[str, ...]) -> torch.Tensor:
     return torch.tensor([_region_of(n) for n in joint_names])
 
 
+def dominant_joints(
+    skin_vertex: torch.Tensor, skin_joint: torch.Tensor, skin_weight: torch.Tensor, num_vertices: int, num_joints: int
+) -> torch.Tensor:
+    """(V,) the joint with the largest skinning weight of each vertex (CPU)."""
+    dense = skin_weight.new_zeros(num_vertices, num_joints)
+    dense[skin_vertex, skin_joint] = skin_weight
+    return dense.argmax(1).cpu()
+
+
 def vertex_regions(rig: Rig) -> torch.Tensor:
     """(V,) region index of each vertex: the region of its largest skinning weight."""
-    dense = rig.dense_skinning_weights()
-    return joint_regions(rig.joint_names)[dense.argmax(1)]
+    dominant = dominant_joints(rig.skin_vertex, rig.skin_joint, rig.skin_weight, rig.num_vertices, rig.num_joints)
+    return joint_regions(rig.joint_names)[dominant]

@@ -35,7 +35,7 @@ from typing import Literal
 import numpy as np
 from PIL import Image, ImageFilter
 
-from .io.glb import MeshSpec, vertex_normals
+from .io.glb import MeshSpec, mesh_list, vertex_normals
 
 __all__ = ["Camera", "MeshSpec", "frame_camera", "project", "render_image", "render_png"]
 
@@ -180,12 +180,7 @@ def frame_camera(
 
 
 def _check_meshes(meshes: Sequence[MeshSpec]) -> list[MeshSpec]:
-    meshes = list(meshes)
-    if not meshes:
-        raise ValueError("meshes: expected at least one MeshSpec, got an empty sequence")
-    for i, m in enumerate(meshes):
-        if not isinstance(m, MeshSpec):
-            raise ValueError(f"meshes[{i}]: expected a MeshSpec, got {type(m).__name__}")
+    meshes = mesh_list(meshes)
     if sum(len(m.vertices) for m in meshes) == 0:
         raise ValueError("meshes: all meshes are empty (no vertices)")
     return meshes

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["MeshSpec", "vertex_normals", "write_glb", "read_glb_positions", "read_glb_indices"]
+__all__ = ["MeshSpec", "mesh_list", "vertex_normals", "write_glb", "read_glb_positions", "read_glb_indices"]
 
 _GLB_MAGIC = 0x46546C67  # b"glTF"
 _GLB_VERSION = 2
@@ -123,18 +123,25 @@ def _pad4(data: bytes, fill: bytes) -> bytes:
     return data + fill * (-len(data) % 4)
 
 
-def write_glb(path: str | os.PathLike[str], meshes: Sequence[MeshSpec]) -> None:
-    """Write ``meshes`` to ``path`` as a binary glTF 2.0 file.
-
-    Raises ValueError for an empty list, a non-MeshSpec entry or a mesh with no
-    vertices or faces (glTF accessors need at least one element).
-    """
+def mesh_list(meshes: Sequence[MeshSpec]) -> list[MeshSpec]:
+    """``meshes`` as a list, or ValueError if it is empty or holds anything but MeshSpec."""
     meshes = list(meshes)
     if not meshes:
         raise ValueError("meshes: expected at least one MeshSpec, got an empty sequence")
     for i, m in enumerate(meshes):
         if not isinstance(m, MeshSpec):
             raise ValueError(f"meshes[{i}]: expected a MeshSpec, got {type(m).__name__}")
+    return meshes
+
+
+def write_glb(path: str | os.PathLike[str], meshes: Sequence[MeshSpec]) -> None:
+    """Write ``meshes`` to ``path`` as a binary glTF 2.0 file.
+
+    Raises ValueError for an empty list, a non-MeshSpec entry or a mesh with no
+    vertices or faces (glTF accessors need at least one element).
+    """
+    meshes = mesh_list(meshes)
+    for i, m in enumerate(meshes):
         if len(m.vertices) == 0 or len(m.faces) == 0:
             raise ValueError(
                 f"meshes[{i}]: expected at least one vertex and one face, "
