@@ -23,13 +23,14 @@ import torch
 from torch import nn
 
 from ._checks import check_finite, check_like, check_shape, check_tensor
-from .geometry.kinematics import forward_kinematics
+from .geometry.kinematics import pose_transforms
 from .geometry.rotations import axis_angle_to_matrix, rot6d_to_matrix
 from .geometry.skinning import SkinLayout, lbs_sparse, skin_layout
 from .rig import Rig
 from .skeleton import SkeletonTransfer
 
 if TYPE_CHECKING:
+    from .procedural import ProceduralDefinition, ProceduralTwist
     from .topology import TopologyTransfer
 
 __all__ = ["BodyLayer", "BodyOutput", "PreparedIdentity"]
@@ -82,10 +83,32 @@ class BodyLayer(nn.Module):
             pose canonical rest meshes given directly (:meth:`prepare_rest`).
         topology: the transfer from the backend's native topology; None when the backend
             already produces canonical meshes.
+        procedural: procedural twist joints (paper 001): True for the sidecar shipped with
+            unibody (upper arms, forearms, thighs, shins), or a parsed
+            :class:`~unibody.procedural.ProceduralDefinition`. The pose stays 77 joints and
+            the outputs 78 public joints; the expanded skeleton is internal.
     """
 
-    def __init__(self, rig: Rig, identity: nn.Module | None = None, topology: TopologyTransfer | None = None) -> None:
+    def __init__(
+        self,
+        rig: Rig,
+        identity: nn.Module | None = None,
+        topology: TopologyTransfer | None = None,
+        *,
+        procedural: bool | ProceduralDefinition = False,
+    ) -> None:
         super().__init__()
+        self.twist: ProceduralTwist | None = None
+        if procedural is not False:
+            from .procedural import ProceduralDefinition, ProceduralTwist, canonical_definition
+
+            if procedural is True:
+                procedural = canonical_definition()
+            if not isinstance(procedural, ProceduralDefinition):
+                raise TypeError(
+                    f"procedural: expected a bool or a ProceduralDefinition, got {type(procedural).__name__}"
+                )
+            self.twist = ProceduralTwist(procedural, rig)
         self.rig_tree = rig.tree
         self.joint_names = rig.joint_names
         self.identity = identity
@@ -104,14 +127,18 @@ class BodyLayer(nn.Module):
 
     @classmethod
     def from_anny(
-        cls, *, local_changes: str | tuple[str, ...] = "none", dtype: torch.dtype = torch.float32
+        cls,
+        *,
+        local_changes: str | tuple[str, ...] = "none",
+        procedural: bool | ProceduralDefinition = False,
+        dtype: torch.dtype = torch.float32,
     ) -> BodyLayer:
         """The canonical rig with Anny as identity backend (offline, from the ``anny`` package)."""
         from .identity.anny import AnnyIdentity
         from .topology import TopologyTransfer
 
         identity = AnnyIdentity.create(local_changes=local_changes)
-        return cls(Rig.canonical(), identity, TopologyTransfer.from_anny()).to(dtype)
+        return cls(Rig.canonical(), identity, TopologyTransfer.from_anny(), procedural=procedural).to(dtype)
 
     def _layout(self) -> SkinLayout:
         fields = {k: getattr(self, f"_skin_{k}") for k in self._layout_fields}
@@ -203,6 +230,9 @@ class BodyLayer(nn.Module):
         Returns:
             ``(world_rot (B, J, 3, 3), world_pos (B, J, 3), vertices (B, V, 3))``.
         """
+        if self.twist is not None:
+            p = prepared
+            return self.twist(p.rest_vertices, p.rest_rotations, p.rest_joints, p.offsets, local_rot, transl)
         g_rot, g_pos, mats = self.skin_transforms(prepared, local_rot, transl)
         return g_rot, g_pos, lbs_sparse(prepared.rest_vertices, mats, self.skin_weight, self._layout())
 
@@ -210,13 +240,8 @@ class BodyLayer(nn.Module):
         self, prepared: PreparedIdentity, local_rot: torch.Tensor, transl: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """FK and skinning transforms: ``(world_rot, world_pos, mats (B, J, 3, 4))``, mats = G T^-1."""
-        b = local_rot.shape[0]
-        local_t = prepared.offsets.expand(b, -1, -1)
-        local_t = torch.cat([local_t[:, :1], transl[:, None], local_t[:, 2:]], dim=1)
-        g_rot, g_pos = forward_kinematics(self.rig_tree, local_rot, local_t)
-        skin_rot = g_rot @ prepared.rest_rotations.transpose(-1, -2)
-        skin_t = g_pos - (skin_rot @ prepared.rest_joints[..., None]).squeeze(-1)
-        return g_rot, g_pos, torch.cat([skin_rot, skin_t[..., None]], dim=-1)
+        p = prepared
+        return pose_transforms(self.rig_tree, local_rot, p.offsets, transl, p.rest_rotations, p.rest_joints)
 
     def to_relative(self, local_rot: torch.Tensor) -> torch.Tensor:
         """Absolute local rotations (B, 77, 3, 3) -> T-pose-relative: O_p R_abs O_j^T (paper 001)."""

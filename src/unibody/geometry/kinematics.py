@@ -13,7 +13,7 @@ import torch
 
 from ..rig import KinematicTree
 
-__all__ = ["forward_kinematics", "relative_to_parent", "compose", "invert"]
+__all__ = ["forward_kinematics", "pose_transforms", "relative_to_parent", "compose", "invert"]
 
 
 @cache
@@ -67,6 +67,34 @@ def forward_kinematics(
         r_levels.append(rp @ rot[:, idx])
         t_levels.append((rp @ trans[:, idx, :, None]).squeeze(-1) + tp)
     return torch.cat(r_levels, 1)[:, order], torch.cat(t_levels, 1)[:, order]
+
+
+def pose_transforms(
+    tree: KinematicTree,
+    local_rot: torch.Tensor,
+    offsets: torch.Tensor,
+    transl: torch.Tensor,
+    rest_rot: torch.Tensor,
+    rest_pos: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """FK of a posed body and its skinning transforms ``G_k T_k^-1``.
+
+    Args:
+        tree: the joint hierarchy; joint 0 is a virtual root at the origin, joint 1 the Hips.
+        local_rot: (B, J, 3, 3) local rotations.
+        offsets: (Bi, J, 3) each joint's rest position in its parent's rest frame (Bi = 1 or B).
+        transl: (B, 3) world position of joint 1 (it replaces joint 1's offset).
+        rest_rot: (Bi, J, 3, 3) rest world rotations; rest_pos: (Bi, J, 3) rest positions.
+
+    Returns:
+        ``(world_rot (B, J, 3, 3), world_pos (B, J, 3), mats (B, J, 3, 4))``.
+    """
+    local_t = offsets.expand(local_rot.shape[0], -1, -1)
+    local_t = torch.cat([local_t[:, :1], transl[:, None], local_t[:, 2:]], dim=1)
+    g_rot, g_pos = forward_kinematics(tree, local_rot, local_t)
+    skin_rot = g_rot @ rest_rot.transpose(-1, -2)
+    skin_t = g_pos - (skin_rot @ rest_pos[..., None]).squeeze(-1)
+    return g_rot, g_pos, torch.cat([skin_rot, skin_t[..., None]], dim=-1)
 
 
 def relative_to_parent(
