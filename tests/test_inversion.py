@@ -122,3 +122,7 @@ def test_cli_invert_and_pose_round_trip(tmp_path, anny_layer64):
     assert torch.is_grad_enabled()  # the CLI must not switch gradients off for its caller
     back = np.load(tmp_path / "back.npz")["vertices"]
     assert np.linalg.norm(back - verts.numpy(), axis=-1).mean() < 0.004
+    assert main(["pose", str(tmp_path / "motion.npz"), "--out", str(tmp_path / "twist.npz"), "--procedural"]) == 0
+    twist = np.load(tmp_path / "twist.npz")["vertices"]
+    moved = np.linalg.norm(twist - back, axis=-1)
+    assert twist.shape == back.shape and 0 < moved.max() < 0.05 and moved.mean() < 0.005

@@ -222,6 +222,8 @@ class BodyLayer(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """FK + LBS from absolute local rotations, without input checks (for solvers).
 
+        With procedural twist the twist joints are evaluated in between (internally).
+
         Args:
             prepared: the identity (batch 1 or B).
             local_rot: (B, J, 3, 3) absolute local rotations, Root included (row 0).
@@ -239,7 +241,10 @@ class BodyLayer(nn.Module):
     def skin_transforms(
         self, prepared: PreparedIdentity, local_rot: torch.Tensor, transl: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """FK and skinning transforms: ``(world_rot, world_pos, mats (B, J, 3, 4))``, mats = G T^-1."""
+        """FK and skinning transforms: ``(world_rot, world_pos, mats (B, J, 3, 4))``, mats = G T^-1.
+
+        The public joints only (plain LBS): procedural twist joints are not included.
+        """
         p = prepared
         return pose_transforms(self.rig_tree, local_rot, p.offsets, transl, p.rest_rotations, p.rest_joints)
 

@@ -128,15 +128,18 @@ def run_invert(seq_path: Path, out: Path, preset: str, batch: int) -> None:
     print(f"wrote {out}: {len(err)} frames, mean per-vertex error {1e3 * float(err.mean()):.2f} mm")
 
 
-def run_pose(motion_path: Path, out: Path) -> None:
-    """Pose a motion file back into canonical meshes (npz: vertices (T, V, 3), faces)."""
+def run_pose(motion_path: Path, out: Path, procedural: bool = False) -> None:
+    """Pose a motion file back into canonical meshes (npz: vertices (T, V, 3), faces).
+
+    ``procedural`` adds the shipped twist joints (docs/procedural.md).
+    """
     import numpy as np
 
     from .body import BodyLayer
     from .io.motion import load_motion
 
     motion = load_motion(motion_path)
-    layer = BodyLayer.from_anny()
+    layer = BodyLayer.from_anny(procedural=procedural)
     params = np.full((1, 6), 0.5, np.float32) if motion.identity is None else motion.identity[None]
     prepared = layer.prepare_identity(torch.from_numpy(np.asarray(params, np.float32)))
     out_v = layer.pose(prepared, torch.from_numpy(motion.pose), transl=torch.from_numpy(motion.transl)).vertices
@@ -170,6 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     pose = sub.add_parser("pose", help="motion npz -> canonical meshes npz (vertices (T, V, 3), faces)")
     pose.add_argument("motion", type=Path)
     pose.add_argument("--out", type=Path, required=True)
+    pose.add_argument("--procedural", action="store_true", help="with the shipped procedural twist joints")
     args = parser.parse_args(argv)
     with torch.no_grad():  # a context, not a global switch: callers (tests) keep their state
         if args.command == "demo":
@@ -179,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "invert":
             run_invert(args.sequence, args.out, args.preset, args.batch)
         elif args.command == "pose":
-            run_pose(args.motion, args.out)
+            run_pose(args.motion, args.out, args.procedural)
     return 0
 
 
