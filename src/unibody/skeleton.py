@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from ._checks import check_finite, check_like, check_shape
-from .geometry.procrustes import polar_svd
+from .geometry.procrustes import polar
 from .geometry.rotations import shortest_arc
 from .geometry.sparse import crow_indices as _crow
 from .geometry.sparse import csr as _csr
@@ -112,7 +112,7 @@ class SkeletonTransfer(nn.Module):
             - joints[..., :, None] * m[:, None, :]
             + n[:, None, None] * joints[..., :, None] * cb[:, None, :]
         )
-        r = polar_svd(h[:, self.skinned])
+        r = polar(h[:, self.skinned])
         eye = torch.eye(3, dtype=r.dtype, device=r.device).expand(b, 1, 3, 3)
         return torch.cat([eye, r], dim=1)[:, self.donor]
 
@@ -130,7 +130,7 @@ class SkeletonTransfer(nn.Module):
         )
         align = eye.expand(b, self.num_joints, 3, 3)
         align = align.index_copy(1, self.single_k, single)
-        return align.index_copy(1, self.multi_joints, polar_svd(h))
+        return align.index_copy(1, self.multi_joints, polar(h))
 
     def forward(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Fit the rig to meshes.

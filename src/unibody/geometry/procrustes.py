@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["cross_covariance", "kabsch", "polar_svd", "newton_schulz"]
+__all__ = ["cross_covariance", "kabsch", "polar", "polar_svd", "newton_schulz"]
 
 
 def cross_covariance(a: torch.Tensor, b: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
@@ -42,6 +42,38 @@ def polar_svd(h: torch.Tensor) -> torch.Tensor:
     fix = torch.ones_like(u[..., 0, :])
     fix = torch.cat([fix[..., :2], d[..., None]], dim=-1)
     return (u * fix[..., None, :]) @ vh
+
+
+def polar(h: torch.Tensor, iters: int = 6) -> torch.Tensor:
+    """The rotation closest to ``h`` (..., 3, 3), as :func:`polar_svd` but ~4x faster on CPU.
+
+    Higham's scaled Newton iteration for the orthogonal polar factor,
+    ``X <- (g X + X^-T / g) / 2`` with ``g = (|X^-1|_F / |X|_F)^(1/2)``, ``X^-T`` from the
+    cofactors: elementwise work over the batch instead of one LAPACK SVD per matrix. It
+    converges quadratically for any nonsingular ``h`` (6 steps reach float64 rounding at
+    condition numbers of a few hundred). Where the polar factor is not the answer
+    (``det h <= 0``: a reflection) or the iterate is not orthogonal to ``sqrt(eps)`` after
+    ``iters`` steps, those matrices are solved by :func:`polar_svd` instead.
+    """
+    x = h
+    det0 = None
+    for _ in range(iters):
+        a, b, c = x.unbind(-2)
+        cof = torch.stack(
+            [torch.linalg.cross(b, c, dim=-1), torch.linalg.cross(c, a, dim=-1), torch.linalg.cross(a, b, dim=-1)], -2
+        )
+        det = (a * cof[..., 0, :]).sum(-1)
+        if det0 is None:
+            det0 = det
+        inv_t = cof / torch.where(det == 0, 1.0, det)[..., None, None]
+        g = (inv_t.square().sum((-1, -2)) / x.square().sum((-1, -2)).clamp_min(torch.finfo(h.dtype).tiny)).pow(0.25)
+        x = 0.5 * (g[..., None, None] * x + inv_t / g[..., None, None])
+    eye = torch.eye(3, dtype=h.dtype, device=h.device)
+    off = (x.transpose(-1, -2) @ x - eye).abs().amax((-1, -2))
+    bad = ~(off <= torch.finfo(h.dtype).eps ** 0.5) | ~(det0 > 0)
+    if bool(bad.any()):
+        x = x.masked_scatter(bad[..., None, None], polar_svd(h[bad]))
+    return x
 
 
 def kabsch(a: torch.Tensor, b: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
