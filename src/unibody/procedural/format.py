@@ -23,6 +23,10 @@ from typing import Any
 
 __all__ = [
     "AXES",
+    "AXIS_CONVENTIONS",
+    "CONVENTIONS",
+    "MATRIX_META",
+    "POLICIES",
     "EVALUATION_ORDER",
     "SOURCE_ROTATION",
     "SUPPORTED_MODES",
@@ -62,7 +66,7 @@ SUPPORTED_MAJOR = 1
 MATRIX_NAMES = ("rotation", "translation")
 TRANSLATION_TOLERANCE = 1e-5
 
-_CONVENTIONS = {
+CONVENTIONS = {
     "units": "meters",
     "angle_units": "radians",
     "dtype": "float32",
@@ -71,12 +75,12 @@ _CONVENTIONS = {
     "euler_order": "XYZ",
     "quaternion_order": "xyzw",
 }
-_AXES = {"up": "+Y", "forward": "+Z", "bone": "+X"}
-_POLICIES = {
+AXIS_CONVENTIONS = {"up": "+Y", "forward": "+Z", "bone": "+X"}
+POLICIES = {
     "removed_joint_parent_policy": "nearest_kept_ancestor",
     "skin_weight_aggregation_policy": "add_to_nearest_kept_ancestor",
 }
-_MATRIX_META = {"format": "coo", "dtype": "float32", "row_space": "procedural_joints", "column_space": "public_joints"}
+MATRIX_META = {"format": "coo", "dtype": "float32", "row_space": "procedural_joints", "column_space": "public_joints"}
 _TOP_KEYS = (
     "schema_version",
     "modes",
@@ -522,22 +526,22 @@ def _template_asset(value: object) -> TemplateAsset:
 
 
 def _conventions(value: object) -> Conventions:
-    d = _object(value, "conventions", (*_CONVENTIONS, "axes"))
-    for key, expected in _CONVENTIONS.items():
+    d = _object(value, "conventions", (*CONVENTIONS, "axes"))
+    for key, expected in CONVENTIONS.items():
         _const(d[key], f"conventions.{key}", expected)
-    axes = _object(d["axes"], "conventions.axes", tuple(_AXES))
-    for key, expected in _AXES.items():
+    axes = _object(d["axes"], "conventions.axes", tuple(AXIS_CONVENTIONS))
+    for key, expected in AXIS_CONVENTIONS.items():
         _const(axes[key], f"conventions.axes.{key}", expected)
-    return Conventions(*(d[k] for k in _CONVENTIONS), axes["up"], axes["forward"], axes["bone"])
+    return Conventions(*(d[k] for k in CONVENTIONS), axes["up"], axes["forward"], axes["bone"])
 
 
 def _derivation(value: object) -> PublicRigDerivation:
     path = "public_rig_derivation"
-    d = _object(value, path, ("main_joint_names", *_POLICIES))
+    d = _object(value, path, ("main_joint_names", *POLICIES))
     names = _names(d["main_joint_names"], f"{path}.main_joint_names", "main joint name")
-    for key, expected in _POLICIES.items():
+    for key, expected in POLICIES.items():
         _const(d[key], f"{path}.{key}", expected)
-    return PublicRigDerivation(names, *(d[k] for k in _POLICIES))
+    return PublicRigDerivation(names, *(d[k] for k in POLICIES))
 
 
 def _extractors(value: object, modes: tuple[str, ...]) -> tuple[ChannelExtractor, ...]:
@@ -650,8 +654,8 @@ def _matrices(value: object, owner: dict[str, Segment], main: set[str]) -> tuple
 def _matrix(d: dict[str, Any], name: str, owner: dict[str, Segment], main: set[str]) -> ParameterMatrix:
     """Types, metadata, lengths, known rows and columns, no duplicate entries."""
     path = f"parameter_matrices.{name}"
-    m = _object(d[name], path, (*_MATRIX_META, "rows", "columns", "values"))
-    for key, expected in _MATRIX_META.items():
+    m = _object(d[name], path, (*MATRIX_META, "rows", "columns", "values"))
+    for key, expected in MATRIX_META.items():
         _const(m[key], f"{path}.{key}", expected)
     rows = _list(m["rows"], f"{path}.rows")
     columns = _list(m["columns"], f"{path}.columns")
@@ -673,7 +677,7 @@ def _matrix(d: dict[str, Any], name: str, owner: dict[str, Segment], main: set[s
             )
         first[row, column] = i
     numbers = tuple(_number(v, f"{path}.values[{i}]") for i, v in enumerate(values))
-    return ParameterMatrix(name, *(m[k] for k in _MATRIX_META), tuple(rows), tuple(columns), numbers)
+    return ParameterMatrix(name, *(m[k] for k in MATRIX_META), tuple(rows), tuple(columns), numbers)
 
 
 def _missing_rows(m: ParameterMatrix, owner: dict[str, Segment]) -> None:
