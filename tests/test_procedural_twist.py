@@ -32,16 +32,11 @@ def layers(rig):
     return plain, twisted, plain.prepare_rest(rig.bind_vertices[None])
 
 
-def _bind_local(prepared):
+def _bind_local(prepared, rig):
+    """Absolute local rotations of the rest (bind) pose."""
     r = prepared.rest_rotations
-    parents = torch.tensor([max(p, 0) for p in _parents()])
+    parents = torch.tensor([max(p, 0) for p in rig.tree.parents])
     return r[:, parents].transpose(-1, -2) @ r
-
-
-def _parents():
-    from unibody.rig import Rig
-
-    return Rig.canonical().tree.parents
 
 
 def _random_rotations(n, scale, gen, dtype=torch.float64):
@@ -197,7 +192,7 @@ def test_angles_match_a_per_joint_loop(layers, definition, rig):
     local = torch.cat([eye, _random_rotations(3 * 77, 0.8, gen).view(3, 77, 3, 3)], 1)
     got = twist.angles(local, prepared.rest_rotations, prepared.rest_joints)
     names = rig.joint_names
-    bind_local = _bind_local(prepared)[0]
+    bind_local = _bind_local(prepared, rig)[0]
     rest_r, rest_p = prepared.rest_rotations[0], prepared.rest_joints[0]
     m = definition.rotation
     for b in range(3):
@@ -222,7 +217,7 @@ def test_angles_match_a_per_joint_loop(layers, definition, rig):
 def test_bind_pose_and_pure_bending_match_plain_lbs(layers, rig):
     plain, twisted, prepared = layers
     gen = torch.Generator().manual_seed(2)
-    bind_local = _bind_local(prepared).expand(4, -1, -1, -1).clone()
+    bind_local = _bind_local(prepared, rig).expand(4, -1, -1, -1).clone()
     transl = torch.randn(4, 3, generator=gen, dtype=torch.float64) * 0.1
     out_p = plain.pose(prepared, bind_local[:, 1:], transl=transl, absolute=True)
     out_t = twisted.pose(prepared, bind_local[:, 1:], transl=transl, absolute=True)
@@ -264,7 +259,7 @@ def _radius(vertices, joints, names, seg_start, seg_end, select):
 def test_twist_keeps_the_forearm_round(layers, rig):
     plain, twisted, prepared = layers
     names = rig.joint_names
-    local = _bind_local(prepared).clone()
+    local = _bind_local(prepared, rig).clone()
     j = names.index("LeftHand")
     bone = prepared.rest_rotations[0, j].T @ (prepared.rest_joints[0, j] - prepared.rest_joints[0, j - 1])
     local[:, j] = local[:, j] @ axis_angle_to_matrix(math.radians(150) * bone / bone.norm())

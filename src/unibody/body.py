@@ -25,7 +25,7 @@ from torch import nn
 from ._checks import check_finite, check_like, check_shape, check_tensor
 from .geometry.kinematics import pose_transforms
 from .geometry.rotations import axis_angle_to_matrix, rot6d_to_matrix
-from .geometry.skinning import SkinLayout, lbs_sparse, skin_layout
+from .geometry.skinning import lbs_sparse, register_skin_layout, registered_skin_layout, skin_layout
 from .rig import Rig
 from .skeleton import SkeletonTransfer
 
@@ -119,10 +119,7 @@ class BodyLayer(nn.Module):
         self.register_buffer("tpose_orient", rig.tpose_orient, persistent=False)
         self.register_buffer("faces", rig.faces, persistent=False)
         self.register_buffer("skin_weight", rig.skin_weight, persistent=False)
-        layout = skin_layout(rig.skin_vertex, rig.skin_joint, rig.num_vertices, rig.num_joints)
-        self._layout_fields = tuple(k for k, v in vars(layout).items() if isinstance(v, torch.Tensor))
-        for k in self._layout_fields:
-            self.register_buffer(f"_skin_{k}", getattr(layout, k), persistent=False)
+        register_skin_layout(self, skin_layout(rig.skin_vertex, rig.skin_joint, rig.num_vertices, rig.num_joints))
         self.num_vertices, self.num_joints = rig.num_vertices, rig.num_joints
 
     @classmethod
@@ -139,10 +136,6 @@ class BodyLayer(nn.Module):
 
         identity = AnnyIdentity.create(local_changes=local_changes)
         return cls(Rig.canonical(), identity, TopologyTransfer.from_anny(), procedural=procedural).to(dtype)
-
-    def _layout(self) -> SkinLayout:
-        fields = {k: getattr(self, f"_skin_{k}") for k in self._layout_fields}
-        return SkinLayout(**fields, num_vertices=self.num_vertices, num_joints=self.num_joints)
 
     def prepare_rest(self, rest_vertices: torch.Tensor) -> PreparedIdentity:
         """Fit the skeleton to canonical rest meshes (B, V, 3), metres."""
@@ -236,7 +229,7 @@ class BodyLayer(nn.Module):
             p = prepared
             return self.twist(p.rest_vertices, p.rest_rotations, p.rest_joints, p.offsets, local_rot, transl)
         g_rot, g_pos, mats = self.skin_transforms(prepared, local_rot, transl)
-        return g_rot, g_pos, lbs_sparse(prepared.rest_vertices, mats, self.skin_weight, self._layout())
+        return g_rot, g_pos, lbs_sparse(prepared.rest_vertices, mats, self.skin_weight, registered_skin_layout(self))
 
     def skin_transforms(
         self, prepared: PreparedIdentity, local_rot: torch.Tensor, transl: torch.Tensor

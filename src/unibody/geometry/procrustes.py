@@ -45,7 +45,7 @@ def polar_svd(h: torch.Tensor) -> torch.Tensor:
 
 
 def polar(h: torch.Tensor, iters: int = 6) -> torch.Tensor:
-    """The rotation closest to ``h`` (..., 3, 3), as :func:`polar_svd` but ~4x faster on CPU.
+    """The rotation closest to ``h`` (..., 3, 3), as :func:`polar_svd`, without LAPACK in the common case.
 
     Higham's scaled Newton iteration for the orthogonal polar factor,
     ``X <- (g X + X^-T / g) / 2`` with ``g = (|X^-1|_F / |X|_F)^(1/2)``, ``X^-T`` from the

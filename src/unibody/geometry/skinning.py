@@ -15,11 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from torch import nn
 
 from .sparse import crow_indices as _crow
 from .sparse import csr
 
-__all__ = ["SkinLayout", "skin_layout", "lbs_sparse", "lbs_dense"]
+__all__ = ["SkinLayout", "skin_layout", "register_skin_layout", "registered_skin_layout", "lbs_sparse", "lbs_dense"]
 
 # Sparse products over B > 8 poses are faster in chunks of 8 (the (V, 3B) result stays in
 # cache): measured 18k vs 10k meshes/s at B=32 on 2 CPU cores (benchmarks/forward.py).
@@ -74,6 +75,22 @@ def skin_layout(vertex: torch.Tensor, joint: torch.Tensor, num_vertices: int, nu
         num_vertices=num_vertices,
         num_joints=num_joints,
     )
+
+
+_INDEX_FIELDS = ("vertex", "joint", "x_crow", "x_col", "xt_crow", "xt_col", "xt_perm", "w_crow")
+
+
+def register_skin_layout(module: nn.Module, layout: SkinLayout) -> None:
+    """Keep a layout on ``module`` as non-persistent buffers ``_skin_<field>`` (they follow ``.to()``)."""
+    for k in _INDEX_FIELDS:
+        module.register_buffer(f"_skin_{k}", getattr(layout, k), persistent=False)
+    module._skin_sizes = (layout.num_vertices, layout.num_joints)
+
+
+def registered_skin_layout(module: nn.Module) -> SkinLayout:
+    """The layout stored by :func:`register_skin_layout`, on the module's current device."""
+    v, j = module._skin_sizes
+    return SkinLayout(**{k: getattr(module, f"_skin_{k}") for k in _INDEX_FIELDS}, num_vertices=v, num_joints=j)
 
 
 def _x_values(rest: torch.Tensor, weight: torch.Tensor, layout: SkinLayout) -> torch.Tensor:

@@ -22,11 +22,9 @@ import torch
 
 from ..geometry.rotations import shortest_arc
 from ..rig import KinematicTree, Rig
-from .format import ProceduralDefinition, ProceduralFormatError
+from .format import AXES, ProceduralDefinition, ProceduralFormatError
 
 __all__ = ["expand_rig", "collapse_rig", "segment_alignment", "translation_matrix"]
-
-_AXIS = {"x": 0, "y": 1, "z": 2}
 
 
 def translation_matrix(definition: ProceduralDefinition, dtype: torch.dtype = torch.float64) -> torch.Tensor:
@@ -85,7 +83,7 @@ def _segment_tables(definition: ProceduralDefinition, rig: Rig):
             )
         k0 = len(start)
         for _ in seg.twist_joints:
-            start.append(a), end.append(b), axis.append(_AXIS[seg.source_axis])
+            start.append(a), end.append(b), axis.append(AXES.index(seg.source_axis))
         t_seg = trans[k0 : len(start), b].tolist()
         nodes = [*t_seg, 1.0 if seg.reverse_compensation else 0.0]
         if len(set(nodes)) != len(nodes):

@@ -17,11 +17,11 @@ from torch import nn
 
 from ..geometry.kinematics import pose_transforms
 from ..geometry.rotations import axis_angle_to_matrix
-from ..geometry.skinning import SkinLayout, lbs_sparse, skin_layout
+from ..geometry.skinning import lbs_sparse, register_skin_layout, registered_skin_layout, skin_layout
 from ..rig import Rig
 from .expand import expand_rig, segment_alignment, translation_matrix
 from .extract import twist_channel
-from .format import ProceduralDefinition, load
+from .format import AXES, ProceduralDefinition, load
 
 __all__ = ["ProceduralTwist", "canonical_definition"]
 
@@ -53,11 +53,11 @@ class ProceduralTwist(nn.Module):
         names = rig.joint_names
         col = {n: i for i, n in enumerate(names)}
         row = {n: i for i, n in enumerate(definition.twist_joints)}
-        seg_of = {n: s for s in definition.segments for n in s.twist_joints}
-        start = torch.tensor([col[seg_of[n].start] for n in definition.twist_joints])
-        end = torch.tensor([col[seg_of[n].end] for n in definition.twist_joints])
-        axis = torch.tensor([{"x": 0, "y": 1, "z": 2}[seg_of[n].source_axis] for n in definition.twist_joints])
-        sign = torch.tensor([float(seg_of[n].sign) for n in definition.twist_joints])
+        segs = [definition.segment_of(n) for n in definition.twist_joints]
+        start = torch.tensor([col[s.start] for s in segs])
+        end = torch.tensor([col[s.end] for s in segs])
+        axis = torch.tensor([AXES.index(s.source_axis) for s in segs])
+        sign = torch.tensor([float(s.sign) for s in segs])
         for name, value in (("start", start), ("end", end), ("axis", axis), ("sign", sign)):
             self.register_buffer(f"_{name}", value, persistent=False)
         self.register_buffer("_trans", translation_matrix(definition), persistent=False)
@@ -72,10 +72,7 @@ class ProceduralTwist(nn.Module):
             self.register_buffer(f"_{mode}_vals", torch.tensor([m.values[i] for i in sel]), persistent=False)
         ex = self.expanded
         self.register_buffer("skin_weight", ex.skin_weight, persistent=False)
-        layout = skin_layout(ex.skin_vertex, ex.skin_joint, ex.num_vertices, ex.num_joints)
-        self._layout_fields = tuple(k for k, v in vars(layout).items() if isinstance(v, torch.Tensor))
-        for k in self._layout_fields:
-            self.register_buffer(f"_skin_{k}", getattr(layout, k), persistent=False)
+        register_skin_layout(self, skin_layout(ex.skin_vertex, ex.skin_joint, ex.num_vertices, ex.num_joints))
         self.tree = ex.tree
 
     @classmethod
@@ -86,10 +83,6 @@ class ProceduralTwist(nn.Module):
     @property
     def num_twist(self) -> int:
         return self.expanded.num_joints - self.num_public
-
-    def _layout(self) -> SkinLayout:
-        fields = {k: getattr(self, f"_skin_{k}") for k in self._layout_fields}
-        return SkinLayout(**fields, num_vertices=self.expanded.num_vertices, num_joints=self.expanded.num_joints)
 
     def angles(self, local_rot: torch.Tensor, rest_rot: torch.Tensor, rest_pos: torch.Tensor) -> torch.Tensor:
         """Twist angles ``theta`` (B, K), before the segment signs.
@@ -146,6 +139,6 @@ class ProceduralTwist(nn.Module):
             torch.cat([rest_rot, rest_start @ align], 1),
             torch.cat([rest_pos, twist_pos], 1),
         )
-        vertices = lbs_sparse(rest_vertices, mats, self.skin_weight, self._layout())
+        vertices = lbs_sparse(rest_vertices, mats, self.skin_weight, registered_skin_layout(self))
         n = self.num_public
         return g_rot[:, :n], g_pos[:, :n], vertices
