@@ -35,6 +35,17 @@ def test_round_trip(case, preset, mean_mm):
     assert (r.transpose(-1, -2) @ r - eye).abs().max() < 1e-6 and (torch.det(r) - 1).abs().max() < 1e-6
 
 
+def test_pose_only_result_matches_full_result(case):
+    """residuals=False skips the re-posed mesh and error, and changes nothing else."""
+    layer, prepared, pose, transl, target = case
+    with torch.no_grad():
+        full = PoseInverter(layer, PRESETS["fast"]).invert(target, prepared)
+        lean = PoseInverter(layer, InversionConfig(method="skeleton", residuals=False)).invert(target, prepared)
+    assert lean.vertices is None and lean.per_vertex_error is None
+    assert torch.equal(lean.pose, full.pose) and torch.equal(lean.transl, full.transl)
+    assert torch.allclose(full.per_vertex_error, (full.vertices - target).norm(dim=-1), rtol=0, atol=1e-12)
+
+
 def test_analytic_beats_skeleton_and_hips_follow(case):
     layer, prepared, pose, transl, target = case
     with torch.no_grad():

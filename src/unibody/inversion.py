@@ -63,6 +63,9 @@ class InversionConfig:
         steps, lr: Adam iterations and learning rate of the autograd solver.
         region_weights: per-vertex loss weights of the autograd solver for the regions
             ``body, hands, feet, head``.
+        residuals: whether the result carries the re-posed mesh and the per-vertex error
+            (one more FK + LBS over the batch); False leaves them None, for callers that
+            want the pose only (motion conversion at full speed).
     """
 
     method: Method = "analytic"
@@ -78,6 +81,7 @@ class InversionConfig:
     steps: int = 100
     lr: float = 1e-3
     region_weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    residuals: bool = True
 
     def __post_init__(self) -> None:
         for name, alias in (("method", Method), ("orthogonalization", Orthogonalization), ("init", Init)):
@@ -111,16 +115,18 @@ class InversionResult:
         pose: (B, 77, 3) axis-angle, T-pose-relative local rotations of joints 1..77.
         rotations: (B, 77, 3, 3) the same as matrices.
         transl: (B, 3) m, Hips world position.
-        vertices: (B, V, 3) m, the canonical mesh posed with the result.
-        per_vertex_error: (B, V) m, distance to the target on the canonical topology.
+        vertices: (B, V, 3) m, the canonical mesh posed with the result; None when the
+            config's ``residuals`` is False.
+        per_vertex_error: (B, V) m, distance to the target on the canonical topology; None
+            when ``residuals`` is False.
         iterations: level solves (analytic) or optimiser steps (autograd) performed.
     """
 
     pose: torch.Tensor
     rotations: torch.Tensor
     transl: torch.Tensor
-    vertices: torch.Tensor
-    per_vertex_error: torch.Tensor
+    vertices: torch.Tensor | None
+    per_vertex_error: torch.Tensor | None
     iterations: int
 
 
@@ -421,6 +427,16 @@ class PoseInverter(nn.Module):
                 local = self._zero_unobservable(local, keep=torch.zeros_like(self.observable))
                 transl = target.mean(1)
             local, transl, iterations = self._autograd(prepared, target, local, transl)
-        _, _, pred = self.layer.skin_local(prepared, local, transl)
         rel = self.layer.to_relative(local[:, 1:])
-        return InversionResult(matrix_to_axis_angle(rel), rel, transl, pred, (pred - target).norm(dim=-1), iterations)
+        pred = error = None
+        if cfg.residuals:
+            _, _, pred = self.layer.skin_local(prepared, local, transl)
+            error = _distances(pred, target)
+        return InversionResult(matrix_to_axis_angle(rel), rel, transl, pred, error, iterations)
+
+
+def _distances(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """|a - b| over the last axis of size 3 (~2x faster than ``norm(dim=-1)`` on CPU)."""
+    d = a - b
+    x, y, z = d.unbind(-1)
+    return (x * x).addcmul_(y, y).addcmul_(z, z).sqrt_()

