@@ -1,0 +1,264 @@
+"""Write SMPL-family model files in the official formats, for tests (seeded; no licensed data).
+
+Templates are the real SMPL-topology meshes of the evaluation data when present:
+``mesh/human_man.obj`` (6,890 v, SMPL and SMPL-H topology) and ``mesh/human_neutral.obj``
+(10,475 v, SMPL-X topology), CC BY 4.0. They are looked up under ``$UNIBODY_EVALDATA``,
+else ``/work/shared/evaldata``. Without them a synthetic tube with the same vertex count
+stands in. Family detection only needs the counts. Shape directions, regressors and weights
+are random: these files test formats and bookkeeping, not anatomy.
+
+Formats (key names and shapes as the ``smplx`` package reads them):
+
+- ``.npz``: plain arrays ``v_template (V, 3)``, ``shapedirs (V, 3, S)``, ``J_regressor (J, V)``,
+  ``weights (V, J)``, ``kintree_table (2, J)`` (root parent stored as 4294967295), ``f (F, 3)``
+  uint32, optionally ``posedirs (V, 3, 9 (J - 1))``.
+- ``.pkl``: the same dict pickled the Python-2 way (SMPL's own ``save_model`` calls
+  ``pickle.dump(d, f, -1)``: protocol 2 in Python 2). ``J_regressor`` is a
+  ``scipy.sparse.csc_matrix``. The SMPL 1.0 ("chumpy") variant also wraps ``v_template``,
+  ``shapedirs``, ``posedirs`` and ``weights`` in ``chumpy.ch.Ch``. The MANO / SMPL-H
+  variant stores ``shapedirs`` as a ``chumpy.reordering.Select`` over a wider ``Ch``.
+
+chumpy and scipy are never imported. Throw-away classes carry their module and qualified
+names, and a pickler subclass writes those names as globals, exactly as the real files
+record them. ``legacy=True`` also uses the Python-2 era numpy/scipy module names
+(``numpy.core.multiarray``, ``scipy.sparse.csc``) and stores raw array bytes as latin-1
+text, as Python 2 ``str`` data reads back.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import pickle
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from unibody.io.obj import read_obj
+
+SIZES: dict[str, tuple[int, int, int]] = {"smpl": (6890, 24, 10), "smplh": (6890, 52, 16), "smplx": (10475, 55, 20)}
+"""family -> (vertices, joints, default shapedirs columns; SMPL-X v1.0 layout: 10 shape + 10 expression)."""
+
+SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
+ROOT_PARENT = 4294967295  # uint32 -1, how the official kintree tables store the root's parent
+_MESHES = {6890: "human_man.obj", 10475: "human_neutral.obj"}
+
+
+def _fake_class(module: str, name: str) -> type:
+    return type(name, (), {"__module__": module, "__qualname__": name})
+
+
+FAKE_CH = _fake_class("chumpy.ch", "Ch")
+FAKE_CHUMPY = {
+    "Ch": FAKE_CH,
+    "Select": _fake_class("chumpy.reordering", "Select"),
+    "transpose": _fake_class("chumpy.reordering", "transpose"),
+    "Reshape": _fake_class("chumpy.reordering", "Reshape"),
+    "add": _fake_class("chumpy.ch_ops", "add"),  # not on the loader's allow-list
+}
+FAKE_SPARSE = {
+    (fmt, legacy): _fake_class(f"scipy.sparse.{'' if legacy else '_'}{fmt}", f"{fmt}_matrix")
+    for fmt in ("csc", "csr", "coo")
+    for legacy in (True, False)
+}
+_FAKES = [*FAKE_CHUMPY.values(), *FAKE_SPARSE.values()]
+_LEGACY_NUMPY = {
+    id(np.zeros(1).__reduce__()[0]): ("numpy.core.multiarray", "_reconstruct"),
+    id(np.float64(0).__reduce__()[0]): ("numpy.core.multiarray", "scalar"),
+}
+
+
+def evaldata_dir() -> Path:
+    return Path(os.environ.get("UNIBODY_EVALDATA", "/work/shared/evaldata"))
+
+
+def real_template(num_vertices: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """The real CC BY 4.0 template with this vertex count, or None when absent."""
+    path = evaldata_dir() / "mesh" / _MESHES[num_vertices]
+    if not path.is_file():
+        return None
+    v, faces = read_obj(path)
+    return v, np.asarray(faces, dtype=np.int64)
+
+
+def synthetic_template(num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """A closed-ish tube of ``num_vertices`` points (rings of 10), 1.7 m tall, Y up."""
+    per_ring = 10
+    rings = num_vertices // per_ring
+    t = np.arange(num_vertices)
+    ring, k = np.minimum(t // per_ring, rings - 1), t % per_ring
+    angle = 2 * np.pi * k / per_ring + 0.1 * (t >= rings * per_ring)
+    v = np.stack([0.15 * np.cos(angle), 1.7 * ring / rings, 0.1 * np.sin(angle)], 1)
+    a = (np.arange(rings - 1)[:, None] * per_ring + np.arange(per_ring)[None]).reshape(-1)
+    b = (a // per_ring) * per_ring + (a + 1) % per_ring
+    faces = np.concatenate([np.stack([a, b, b + per_ring], 1), np.stack([a, b + per_ring, a + per_ring], 1)])
+    return v, faces
+
+
+def template(num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    return real_template(num_vertices) or synthetic_template(num_vertices)
+
+
+def make_model(
+    family: str, *, seed: int = 0, num_shape: int | None = None, posedirs: bool = False
+) -> dict[str, np.ndarray]:
+    """A random model of ``family`` in the official key layout (float64, like the files)."""
+    num_vertices, num_joints, default_shape = SIZES[family]
+    rng = np.random.default_rng(seed)
+    v, faces = template(num_vertices)
+    if family == "smpl":
+        parents = np.array(SMPL_PARENTS)
+    else:  # any tree with parents before children
+        parents = np.array([-1, *(rng.integers(0, j) for j in range(1, num_joints))])
+    regressor = np.zeros((num_joints, num_vertices))
+    for j in range(num_joints):  # each joint averages a few vertices, rows sum to 1 (as in the files)
+        ids = rng.choice(num_vertices, size=8, replace=False)
+        regressor[j, ids] = rng.dirichlet(np.ones(8))
+    weights = np.zeros((num_vertices, num_joints))
+    for i in range(4):
+        weights[np.arange(num_vertices), rng.integers(0, num_joints, num_vertices)] += rng.random(num_vertices) + i
+    weights /= weights.sum(1, keepdims=True)
+    model = {
+        "v_template": v,
+        "shapedirs": rng.normal(scale=0.01, size=(num_vertices, 3, num_shape or default_shape)),
+        "J_regressor": regressor,
+        "weights": weights,
+        "kintree_table": np.stack([np.where(parents < 0, ROOT_PARENT, parents), np.arange(num_joints)]).astype(
+            np.int64
+        ),
+        "f": faces.astype(np.uint32),
+    }
+    if posedirs:
+        model["posedirs"] = rng.normal(scale=0.001, size=(num_vertices, 3, 9 * (num_joints - 1)))
+    return model
+
+
+# --- stand-ins for chumpy and scipy objects ------------------------------------------------------------------
+
+
+def fake_object(cls: type, state: dict[str, object]) -> object:
+    obj = cls.__new__(cls)
+    obj.__dict__.update(state)
+    return obj
+
+
+def chumpy_node(kind: str, **terms: object) -> object:
+    """A chumpy node as ``Ch.__getstate__`` leaves it: its terms plus bookkeeping entries."""
+    state = {"_dirty_vars": set(terms), "_itr": None, "_depends_on_deps": {}, "_make_dense": False}
+    return fake_object(FAKE_CHUMPY[kind], {**state, "_make_sparse": False, **terms})
+
+
+def chumpy_ch(x: np.ndarray) -> object:
+    return chumpy_node("Ch", x=np.asarray(x, dtype=np.float64))
+
+
+def chumpy_select(full: np.ndarray, keep: int) -> object:
+    """MANO-style ``Select``: the first ``keep`` columns of a wider (V, 3, S) ``Ch``."""
+    idxs = np.arange(full.size).reshape(full.shape)[..., :keep].reshape(-1)
+    return chumpy_node("Select", a=chumpy_ch(full), idxs=idxs, preferred_shape=(*full.shape[:-1], keep))
+
+
+def sparse_matrix(dense: np.ndarray, fmt: str = "csc", *, legacy: bool = True, coords: bool = False) -> object:
+    """A scipy csc/csr/coo matrix as it pickles (``coords`` for SciPy >= 1.13 coo)."""
+    rows, cols = np.nonzero(dense)
+    order = np.lexsort((rows, cols)) if fmt == "csc" else np.lexsort((cols, rows))
+    rows, cols = rows[order], cols[order]
+    state: dict[str, object] = {"_shape": dense.shape, "maxprint": 50, "data": dense[rows, cols]}
+    if legacy:
+        state["format"] = fmt  # old SciPy kept the format name in the instance dict
+    if fmt == "coo":
+        state.update(
+            {"coords": (rows, cols)} if coords else {"row": rows.astype(np.int32), "col": cols.astype(np.int32)}
+        )
+    else:
+        major, minor, n = (cols, rows, dense.shape[1]) if fmt == "csc" else (rows, cols, dense.shape[0])
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(major, minlength=n))]).astype(np.int32)
+        state.update(indices=minor.astype(np.int32), indptr=indptr)
+    return fake_object(FAKE_SPARSE[(fmt, legacy)], state)
+
+
+class _Pickler(pickle._Pickler):
+    """Pure-Python pickler that records the stand-ins under their fake module names."""
+
+    def __init__(self, file: io.BufferedIOBase, protocol: int, legacy: bool) -> None:
+        super().__init__(file, protocol=protocol)
+        self.legacy = legacy
+        self.names = {id(c): (c.__module__, c.__qualname__) for c in _FAKES}
+        if legacy:
+            self.names.update(_LEGACY_NUMPY)
+
+    def reducer_override(self, obj: object) -> object:
+        if self.legacy and type(obj) is np.ndarray and not obj.dtype.hasobject:
+            func, args, (version, shape, dtype, fortran, raw) = obj.__reduce__()
+            return func, (args[0], args[1], "b"), (version, shape, dtype, fortran, raw.decode("latin1"))
+        return NotImplemented
+
+    def save_global(self, obj: object, name: str | None = None) -> None:
+        target = self.names.get(id(obj))
+        if target is None:
+            return super().save_global(obj, name)
+        module, qualname = target
+        if self.proto >= 4:
+            self.save(module)
+            self.save(qualname)
+            self.write(pickle.STACK_GLOBAL)
+        else:
+            self.write(pickle.GLOBAL + f"{module}\n{qualname}\n".encode())
+        self.memoize(obj)
+
+
+def dumps(obj: object, *, protocol: int = 2, legacy: bool = True) -> bytes:
+    buf = io.BytesIO()
+    _Pickler(buf, protocol, legacy).dump(obj)
+    return buf.getvalue()
+
+
+# --- writers ----------------------------------------------------------------------------------------------------
+
+
+def pkl_payload(
+    model: dict[str, np.ndarray], *, chumpy: bool = False, select_shapedirs: bool = False, legacy: bool = True
+) -> dict[str, object]:
+    """The dict an official pickle holds: sparse J_regressor, optional chumpy wrappers, extra entries."""
+    out: dict[str, object] = {"bs_style": "lbs", "bs_type": "lrotmin", **model}
+    out["J_regressor"] = sparse_matrix(model["J_regressor"], "csc", legacy=legacy)
+    if chumpy:
+        for key in ("v_template", "shapedirs", "posedirs", "weights"):
+            if key in model:
+                out[key] = chumpy_ch(model[key])
+    if select_shapedirs:
+        sd = model["shapedirs"]
+        extra = np.random.default_rng(1).normal(size=sd.shape)
+        out["shapedirs"] = chumpy_select(np.concatenate([sd, extra], axis=2), sd.shape[2])
+    return out
+
+
+def write_pkl(
+    path: Path,
+    model: dict[str, np.ndarray],
+    *,
+    protocol: int = 2,
+    chumpy: bool = False,
+    select_shapedirs: bool = False,
+    legacy: bool = True,
+) -> Path:
+    payload = pkl_payload(model, chumpy=chumpy, select_shapedirs=select_shapedirs, legacy=legacy)
+    path.write_bytes(dumps(payload, protocol=protocol, legacy=legacy))
+    return path
+
+
+def write_npz(path: Path, model: dict[str, object], *, object_keys: tuple[str, ...] = ()) -> Path:
+    """Write an npz; ``object_keys`` become pickled 0-d object arrays (``J_regressor`` as a csc matrix)."""
+    with zipfile.ZipFile(path, "w") as zf:
+        for key, value in model.items():
+            with zf.open(f"{key}.npy", "w") as fp:
+                if key not in object_keys:
+                    np.lib.format.write_array(fp, np.asarray(value), allow_pickle=False)
+                    continue
+                holder = np.empty(1, dtype=object)
+                holder[0] = sparse_matrix(value) if key == "J_regressor" else value
+                holder = holder.reshape(())
+                np.lib.format.write_array_header_1_0(fp, {"descr": "|O", "fortran_order": False, "shape": ()})
+                fp.write(dumps(holder, protocol=3, legacy=False))
+    return path
