@@ -155,8 +155,16 @@ def test_unknown_names():
 
     with pytest.raises(ValueError, match=r"joint name: unknown joint 'LeftForearm'; did you mean 'LeftForeArm'"):
         joint_index("LeftForearm")
-    with pytest.raises(ValueError, match=r"identity backend: unknown name 'smpl'; choose one of anny"):
-        identity.create("smpl")
+    with pytest.raises(ValueError, match=r"identity backend: unknown name 'smplz'; choose one of anny, smpl"):
+        identity.create("smplz")
+
+
+def test_backend_needs_user_files(monkeypatch):
+    from unibody import identity
+
+    monkeypatch.delenv("UNIBODY_MHR_DIR", raising=False)
+    with pytest.raises(ValueError, match=r"identity backend 'mhr': needs the user's model files; .*UNIBODY_MHR_DIR"):
+        identity.create("mhr")
 
 
 def test_anny_param_errors(anny_layer64):
