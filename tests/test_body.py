@@ -155,7 +155,7 @@ def test_unknown_names():
 
     with pytest.raises(ValueError, match=r"joint name: unknown joint 'LeftForearm'; did you mean 'LeftForeArm'"):
         joint_index("LeftForearm")
-    with pytest.raises(ValueError, match=r"identity backend: unknown name 'smplz'; choose one of anny, smpl"):
+    with pytest.raises(ValueError, match=r"identity backend: unknown name 'smplz'; choose one of anny, pca, smpl"):
         identity.create("smplz")
 
 

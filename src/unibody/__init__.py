@@ -5,7 +5,7 @@ rotations of joints 1..77, T-pose-relative by default (paper 001).
 """
 
 from .body import BodyLayer, BodyOutput, PreparedIdentity
-from .identity import AnnyIdentity
+from .identity import AnnyIdentity, GarmentIdentity, MHRIdentity, PCAIdentity, SMPLIdentity
 from .inversion import PRESETS, InversionConfig, InversionResult, PoseInverter
 from .rig import JOINT_NAMES, NUM_JOINTS, NUM_POSED, KinematicTree, Rig, joint_index
 from .skeleton import SkeletonTransfer
@@ -15,16 +15,20 @@ __all__ = [
     "AnnyIdentity",
     "BodyLayer",
     "BodyOutput",
+    "GarmentIdentity",
     "InversionConfig",
     "InversionResult",
     "JOINT_NAMES",
     "KinematicTree",
+    "MHRIdentity",
     "NUM_JOINTS",
     "NUM_POSED",
+    "PCAIdentity",
     "PRESETS",
     "PoseInverter",
     "PreparedIdentity",
     "Rig",
+    "SMPLIdentity",
     "SkeletonTransfer",
     "TopologyTransfer",
     "joint_index",

