@@ -386,3 +386,12 @@ def test_build_script_resumes_to_the_same_asset(build_pca, anny_all, tmp_path, m
     assert "--identities 5 --seed 0" in meta["command"]
     with pytest.raises(SystemExit, match="other settings"):
         build_pca.main([*common[:5], "7", *common[6:], "--out", str(b), "--checkpoint", str(tmp_path / "cb.npz")])
+
+
+def test_demo_with_two_backends(tmp_path):
+    from unibody.cli import main
+
+    assert main(["demo", "--backends", "anny", "pca", "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "demo.glb").stat().st_size > 0 and (tmp_path / "demo.png").stat().st_size > 0
+    with pytest.raises(SystemExit, match="--backends: unknown backend 'smplz'"):
+        main(["demo", "--backends", "smplz", "--out", str(tmp_path)])

@@ -44,34 +44,61 @@ def demo_pose(dtype: torch.dtype = torch.float32) -> torch.Tensor:
     return pose
 
 
-def run_demo(out_dir: Path) -> None:
-    """Pose five Anny identities in one pose; write a GLB and a PNG; print timings."""
+def demo_layers(backends: list[str]) -> list[tuple[str, object, torch.Tensor]]:
+    """``(label, layer, identity params)`` per backend: ``name`` or ``name=PATH`` (user files)."""
     from .body import BodyLayer
+    from .identity import BACKENDS, create
+
+    out = []
+    gen = torch.Generator().manual_seed(0)
+    for spec in backends:
+        name, _, path = spec.partition("=")
+        if name not in BACKENDS:
+            raise SystemExit(f"--backends: unknown backend {name!r}; choose from {', '.join(BACKENDS)}")
+        if name == "anny":
+            keep = list(DEMO_IDENTITIES) if len(backends) == 1 else ["woman", "child"]
+            layer = BodyLayer.from_anny()
+            params = torch.tensor([DEMO_IDENTITIES[k] for k in keep])
+        elif name == "pca":
+            layer = BodyLayer.from_pca()
+            params = torch.zeros(2, layer.identity.num_params)
+            params[:, 1:8] = torch.randn(2, 7, generator=gen)  # the first component is size: keep adults
+        else:
+            layer = BodyLayer.from_identity(create(name, path=path or None))
+            params = layer.identity.default_params(2)
+            params[1:, : min(10, params.shape[1])] = 1.5 * torch.randn(1, min(10, params.shape[1]), generator=gen)
+        out.append((name, layer, params))
+    return out
+
+
+def run_demo(out_dir: Path, backends: list[str] | None = None) -> None:
+    """Pose identities of one or more backends (default: five Anny bodies) in one pose; write GLB + PNG."""
     from .io.glb import MeshSpec, write_glb
     from .render import render_png
 
     t0 = time.perf_counter()
-    layer = BodyLayer.from_anny()
-    print(f"built layer (canonical rig + Anny)        {1e3 * (time.perf_counter() - t0):8.1f} ms")
-    params = torch.tensor(list(DEMO_IDENTITIES.values()))
-    pose = demo_pose().expand(len(params), -1, -1)
+    layers = demo_layers(backends or ["anny"])
+    print(f"built layers ({', '.join(n for n, _, _ in layers)}) {1e3 * (time.perf_counter() - t0):8.1f} ms")
+    meshes, k = [], 0
+    total = sum(len(p) for _, _, p in layers)
+    spacing = 0.75
     with torch.inference_mode():
-        t0 = time.perf_counter()
-        prepared = layer.prepare_identity(params)
-        t1 = time.perf_counter()
-        posed = layer.pose(prepared, pose)
-        t2 = time.perf_counter()
-        # Stand every body on y = 0, side by side along x.
-        lift = -posed.vertices[..., 1].amin(1)
-        spacing = torch.arange(len(params), dtype=lift.dtype) * 0.75
-        transl = torch.stack([spacing - spacing.mean(), lift, torch.zeros_like(lift)], dim=1)
-        posed = layer.pose(prepared, pose, transl=transl)
-    print(f"prepare 5 identities (Anny->topology->skeleton) {1e3 * (t1 - t0):8.1f} ms")
-    print(f"pose 5 meshes (FK + LBS)                  {1e3 * (t2 - t1):8.1f} ms")
-    faces = layer.faces.numpy()
-    meshes = [
-        MeshSpec(v.numpy(), faces, c, n) for v, c, n in zip(posed.vertices, DEMO_COLORS, DEMO_IDENTITIES, strict=True)
-    ]
+        for b, (name, layer, params) in enumerate(layers):
+            t0 = time.perf_counter()
+            prepared = layer.prepare_identity(params)
+            pose = demo_pose().expand(len(params), -1, -1)
+            posed = layer.pose(prepared, pose)
+            # Stand every body on y = 0, side by side along x.
+            lift = -posed.vertices[..., 1].amin(1)
+            x = (torch.arange(len(params), dtype=lift.dtype) + k - (total - 1) / 2) * spacing
+            transl = torch.stack([x, lift, torch.zeros_like(lift)], dim=1)
+            posed = layer.pose(prepared, pose, transl=transl)
+            print(f"{name}: prepare + pose {len(params)} identities {1e3 * (time.perf_counter() - t0):8.1f} ms")
+            faces = layer.faces.numpy()
+            for i, v in enumerate(posed.vertices):
+                color = DEMO_COLORS[((k + i) if len(layers) == 1 else b) % len(DEMO_COLORS)]  # one colour a backend
+                meshes.append(MeshSpec(v.numpy(), faces, color, f"{name}_{i}"))
+            k += len(params)
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     write_glb(out_dir / "demo.glb", meshes)
@@ -162,8 +189,11 @@ def _assets_info() -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="unibody", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="pose five Anny identities; write demo.glb and demo.png")
+    demo = sub.add_parser("demo", help="pose identities of one or more backends; write demo.glb and demo.png")
     demo.add_argument("--out", type=Path, default=Path("unibody_demo"), help="output folder")
+    demo.add_argument(
+        "--backends", nargs="+", default=["anny"], help="anny | pca | smpl=FILE | mhr=DIR | garment=DIR (default anny)"
+    )
     sub.add_parser("assets", help="build (once) and describe the canonical asset cache")
     inv = sub.add_parser("invert", help="mesh sequence (npz: vertices (T, N, 3), topology) -> motion npz")
     inv.add_argument("sequence", type=Path)
@@ -177,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     with torch.no_grad():  # a context, not a global switch: callers (tests) keep their state
         if args.command == "demo":
-            run_demo(args.out)
+            run_demo(args.out, args.backends)
         elif args.command == "assets":
             _assets_info()
         elif args.command == "invert":
