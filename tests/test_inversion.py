@@ -137,3 +137,41 @@ def test_cli_invert_and_pose_round_trip(tmp_path, anny_layer64):
     twist = np.load(tmp_path / "twist.npz")["vertices"]
     moved = np.linalg.norm(twist - back, axis=-1)
     assert twist.shape == back.shape and 0 < moved.max() < 0.05 and moved.mean() < 0.005
+
+
+def test_cli_invert_resumes(tmp_path, anny_layer64, monkeypatch, capsys):
+    from unibody.cli import main
+    from unibody.io.motion import load_motion
+
+    params = np.full(6, 0.5, np.float32)
+    gen = torch.Generator().manual_seed(6)
+    with torch.no_grad():
+        prepared = anny_layer64.prepare_identity(torch.from_numpy(params).double()[None])
+        verts = anny_layer64.pose(prepared, 0.2 * torch.randn(5, 77, 3, generator=gen, dtype=torch.float64)).vertices
+    seq, out = tmp_path / "seq.npz", tmp_path / "motion.npz"
+    np.savez(seq, vertices=verts.float().numpy(), topology=np.asarray("canonical"), identity=params)
+    args = ["invert", str(seq), "--out", str(out), "--batch", "2", "--preset", "fast"]
+    assert main(args) == 0
+    whole = load_motion(out)
+    out.unlink()
+    # Interrupt after the first batch: its result is kept, the next run starts at frame 2.
+    calls = []
+    original = PoseInverter.invert
+
+    def flaky(self, vertices, prepared):
+        calls.append(len(vertices))
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return original(self, vertices, prepared)
+
+    monkeypatch.setattr(PoseInverter, "invert", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        main(args)
+    assert (tmp_path / "motion.npz.partial.npz").is_file() and not out.exists()
+    monkeypatch.setattr(PoseInverter, "invert", original)
+    capsys.readouterr()
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "resuming from" in printed and "2/5 frames already inverted" in printed
+    resumed = load_motion(out)
+    assert np.allclose(resumed.pose, whole.pose, atol=1e-6) and not (tmp_path / "motion.npz.partial.npz").exists()

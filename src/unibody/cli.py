@@ -130,21 +130,25 @@ def run_invert(seq_path: Path, out: Path, preset: str, batch: int) -> None:
     else:
         prepared = inverter.estimate_identity(vertices[:1])
         print("no identity in the file: estimated the rest shape from frame 0")
-    poses, transl, errors = [], [], []
+    # Resumable: finished batches go to <out>.partial.npz, keyed by the input file and settings.
+    partial = out.with_name(out.name + ".partial.npz")
+    key = f"{_file_digest(seq_path)}:{preset}:{batch}"
+    poses, transl, errors = _load_partial(partial, key)
+    first = sum(len(p) for p in poses)
+    if first:
+        print(f"resuming from {partial}: {first}/{len(vertices)} frames already inverted")
     t0 = time.perf_counter()
     grad = torch.enable_grad() if PRESETS[preset].method == "autograd" else torch.no_grad()
     with grad:
-        for start in range(0, len(vertices), batch):
+        for start in range(first, len(vertices), batch):
             result = inverter.invert(vertices[start : start + batch], prepared)
             poses.append(result.pose.detach())
             transl.append(result.transl.detach())
             errors.append(result.per_vertex_error.detach().mean(1))
+            _save_partial(partial, key, poses, transl, errors)
             done = min(start + batch, len(vertices))
-            print(
-                f"\rinverted {done}/{len(vertices)} frames ({done / (time.perf_counter() - t0):.0f} frames/s)",
-                end="",
-                flush=True,
-            )
+            rate = (done - first) / (time.perf_counter() - t0)
+            print(f"\rinverted {done}/{len(vertices)} frames ({rate:.0f} frames/s)", end="", flush=True)
     print()
     err = torch.cat(errors)
     identity = None if seq.identity is None else np.asarray(seq.identity, np.float32)
@@ -152,7 +156,43 @@ def run_invert(seq_path: Path, out: Path, preset: str, batch: int) -> None:
         torch.cat(poses).numpy(), torch.cat(transl).numpy(), 30.0, identity, "anny" if identity is not None else None
     )
     save_motion(out, motion)
+    partial.unlink(missing_ok=True)
     print(f"wrote {out}: {len(err)} frames, mean per-vertex error {1e3 * float(err.mean()):.2f} mm")
+
+
+def _file_digest(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _load_partial(path: Path, key: str) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
+    """Batches saved by an interrupted run with the same input and settings, else nothing."""
+    import numpy as np
+
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if str(data["key"]) == key:
+                pose, transl, error = ([torch.from_numpy(data[k])] for k in ("pose", "transl", "error"))
+                return pose, transl, error
+    except (OSError, ValueError, KeyError):  # absent, truncated or foreign: start over
+        pass
+    return [], [], []
+
+
+def _save_partial(path: Path, key: str, poses, transl, errors) -> None:
+    import os
+
+    import numpy as np
+
+    tmp = path.with_name(path.name + ".tmp.npz")
+    arrays = {k: torch.cat(v).numpy() for k, v in (("pose", poses), ("transl", transl), ("error", errors))}
+    np.savez(tmp, key=np.asarray(key), **arrays)
+    os.replace(tmp, path)
 
 
 def run_pose(motion_path: Path, out: Path, procedural: bool = False) -> None:
