@@ -292,8 +292,9 @@ def _lbfgs(
             accepted[idx[ok]] = True
             pending[idx[ok]] = False
             # Backtrack to the minimum of the quadratic through f(0), f'(0) and f(t), kept
-            # within [t / 10, t / 2] (Nocedal & Wright §3.5).
+            # within [t / 10, t / 2] (Nocedal & Wright §3.5); t / 10 where f(t) is not finite.
             t_quad = -gi * ti.square() / (2 * (f_try - fi - gi * ti)).clamp_min(1e-30)
+            t_quad = torch.where(t_quad.isfinite(), t_quad, 0.1 * ti)
             t[idx[~ok]] = torch.minimum(torch.maximum(t_quad, 0.1 * ti), 0.5 * ti)[~ok]
         step = t[:, None] * d
         # An item stops once it gains less than float precision: its objective fell by less
