@@ -26,7 +26,7 @@ from conftest import icosahedron
 from unibody import assets
 from unibody.geometry.tetra import build_correspondence, closest_point_on_triangles, quads_to_triangles
 from unibody.io.obj import read_obj
-from unibody.registration import PRESETS, RegistrationConfig, _cache, normalize, register, topology_transfer
+from unibody.registration import PRESETS, Phase, RegistrationConfig, _cache, normalize, register, topology_transfer
 from unibody.topology import TopologyTransfer
 
 F64 = torch.float64
@@ -252,6 +252,12 @@ def test_bad_arguments(anny):
         topology_transfer(base, quads, "")
     with pytest.raises(TypeError, match="config: expected a RegistrationConfig"):
         normalize(base, quads, config="coarse")
+    with pytest.raises(ValueError, match="config.search_samples: expected a positive integer"):
+        normalize(base, quads, config=dataclasses.replace(FAST, search_samples=0))
+    with pytest.raises(ValueError, match="config.articulated: expected a non-empty tuple"):
+        register(base, quads, config=dataclasses.replace(FAST, articulated=()))
+    with pytest.raises(ValueError, match="phase: free must be"):
+        normalize(base, quads, config=dataclasses.replace(FAST, search=(Phase("everything", 1, 1, 0.01, 0.01),)))
 
 
 def test_quads_and_triangles_agree_on_units_of_faces(anny):

@@ -127,7 +127,7 @@ def _anatomy(template: Template, delta: torch.Tensor, weight: float = 20.0) -> t
     rotation components a joint cannot make are penalised. Without it curled source fingers
     (SMPL-X's rest hands) can be matched by crossed template fingers.
     """
-    hinge, flex, knuckle, bone = template.finger_axes
+    hinge, flex, knuckle, bone, _ = template.finger_axes
     d = delta[hinge]
     off_axis = d - (d * flex).sum(-1, keepdim=True) * flex
     twist = (delta[knuckle] * bone).sum(-1)
@@ -201,7 +201,7 @@ def _start_hands(template: Template, p: TemplateParams, turn: float, curl: float
     p = p.detached()
     g_r, g_p = template.joints(p)
     theta = p.theta.clone()
-    hinge, flex, knuckle, bone = template.finger_axes
+    hinge, flex, knuckle, _, knuckle_flex = template.finger_axes
     for side in ("Left", "Right"):
         h, i1, p1 = (names.index(f"{side}Hand{s}") for s in ("", "Index1", "Pinky1"))
         n = torch.linalg.cross(g_p[i1] - g_p[h], g_p[p1] - g_p[h], dim=-1)
@@ -210,8 +210,7 @@ def _start_hands(template: Template, p: TemplateParams, turn: float, curl: float
         a = g_r[h] @ delta.T  # world frame of the hand joint before its own delta
         theta[h] = matrix_to_axis_angle(a.T @ rot @ a @ delta)
     if curl:
-        # Knuckles bend about the flexion axis of their finger's middle joint (same plane).
-        axes = torch.cat([flex, flex[0::2]])
+        axes = torch.cat([flex, knuckle_flex])
         joints = torch.cat([hinge, knuckle])
         bend = axis_angle_to_matrix(curl * axes)
         theta[joints] = matrix_to_axis_angle(axis_angle_to_matrix(theta[joints]) @ bend)

@@ -114,9 +114,7 @@ def topology_transfer(
     """
     if not isinstance(name, str) or not name:
         raise ValueError(f"name: expected a non-empty string, got {name!r}")
-    config = _register.PRESETS["default"] if config is None else config
-    if not isinstance(config, RegistrationConfig):
-        raise TypeError(f"config: expected a RegistrationConfig, got {type(config).__name__}")
+    config = _register._check_config(_register.PRESETS["default"] if config is None else config)
     v = as_vertices(vertices)
     f = as_triangles(faces, v.shape[0])
     path = cache_path(cache_key(v, f, config))

@@ -201,6 +201,25 @@ def _sample_source(v: torch.Tensor, f: torch.Tensor, count: int, gen: torch.Gene
     return _Source(v, f, points, normals)
 
 
+def _check_config(config: object) -> RegistrationConfig:
+    """Type and range checks of a configuration (messages name the field)."""
+    if not isinstance(config, RegistrationConfig):
+        raise TypeError(f"config: expected a RegistrationConfig, got {type(config).__name__}")
+    for name in ("search_samples", "search_keep", "template_samples", "source_samples", "hand_samples", "icp_samples"):
+        value = getattr(config, name)
+        if not isinstance(value, int) or value < 1:
+            raise ValueError(f"config.{name}: expected a positive integer, got {value!r}")
+    for name in ("search", "articulated"):
+        phases = getattr(config, name)
+        if not phases or not all(isinstance(ph, Phase) for ph in phases):
+            raise ValueError(f"config.{name}: expected a non-empty tuple of Phase, got {phases!r}")
+    if not isinstance(config.icp, IcpSettings) or config.icp.iterations < 1:
+        raise ValueError(f"config.icp: expected IcpSettings with iterations >= 1, got {config.icp!r}")
+    if not 0.0 < config.min_area_ratio < 1.0:
+        raise ValueError(f"config.min_area_ratio: expected a value in (0, 1), got {config.min_area_ratio}")
+    return config
+
+
 def _start_params(template: Template, pose: str, src: torch.Tensor) -> TemplateParams:
     """Bind (A) or T-pose template scaled to the source height, feet and centroid matched."""
     theta = None if pose == "A" else matrix_to_axis_angle(template.tpose_delta)
@@ -282,9 +301,7 @@ def register(
         ValueError: bad shapes, non-finite values, empty faces, out-of-range ids, or a mesh
             whose size or proportions are not a human body's.
     """
-    config = PRESETS["default"] if config is None else config
-    if not isinstance(config, RegistrationConfig):
-        raise TypeError(f"config: expected a RegistrationConfig, got {type(config).__name__}")
+    config = _check_config(PRESETS["default"] if config is None else config)
     clock = [("start", time.perf_counter())]
     v = as_vertices(vertices)
     f = as_triangles(faces, v.shape[0])
@@ -315,9 +332,7 @@ def normalize(
     Returns:
         The similarity taking the source to metres, Y up, facing +Z, feet on y = 0.
     """
-    config = PRESETS["default"] if config is None else config
-    if not isinstance(config, RegistrationConfig):
-        raise TypeError(f"config: expected a RegistrationConfig, got {type(config).__name__}")
+    config = _check_config(PRESETS["default"] if config is None else config)
     v = as_vertices(vertices)
     stages = _Stages(config, v, as_triangles(faces, v.shape[0]))
     stages.normalize()

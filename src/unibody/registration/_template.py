@@ -143,16 +143,17 @@ class Template:
         return idx, bind, torch.tensor(side_of), torch.tensor(knuckles)
 
     @cached_property
-    def finger_axes(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def finger_axes(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Anatomical axes of the four fingers' joints, in each joint's bind frame.
 
-        Returns ``(hinge joints (H,), flexion axes (H, 3), knuckle joints (K,), bone axes (K, 3))``:
+        Returns ``(hinge joints (H,), flexion axes (H, 3), knuckle joints (K,), bone axes (K, 3),
+        knuckle flexion axes (K, 3))``:
         the middle and end finger joints (levels 3, 4) bend about one axis, the flexion axis
         (the palm's width direction made orthogonal to the bone); the knuckles (level 2) also
         spread, but do not twist about their bone.
         """
         names, pos, rot = self.rig.joint_names, self.bind_pos, self.bind_rot
-        hinge, flex, knuckle, bone = [], [], [], []
+        hinge, flex, knuckle, bone, knuckle_flex = [], [], [], [], []
         for side in ("Left", "Right"):
             width = pos[names.index(f"{side}HandPinky2")] - pos[names.index(f"{side}HandIndex2")]
             for finger in ("Index", "Middle", "Ring", "Pinky"):
@@ -166,7 +167,14 @@ class Template:
                     if level == "2":
                         knuckle.append(k)
                         bone.append(rot[k].T @ b)
+                        knuckle_flex.append(rot[k].T @ a)
                     else:
                         hinge.append(k)
                         flex.append(rot[k].T @ a)
-        return torch.tensor(hinge), torch.stack(flex), torch.tensor(knuckle), torch.stack(bone)
+        return (
+            torch.tensor(hinge),
+            torch.stack(flex),
+            torch.tensor(knuckle),
+            torch.stack(bone),
+            torch.stack(knuckle_flex),
+        )
