@@ -77,7 +77,9 @@ def _surface_table(results: dict) -> None:
     for name, (reg, vs) in results.items():
         s = reg.stats
         sec = dict(s.seconds)
-        times = " | ".join(f"{sec[k]:.1f}" for k in ("normalize", "articulated", "nonrigid", "project", "correspondence"))
+        times = " | ".join(
+            f"{sec[k]:.1f}" for k in ("normalize", "articulated", "nonrigid", "project", "correspondence")
+        )
         print(
             f"| {name} | {vs} | {reg.normalization.unit} | {s.start_pose} | {1e3 * s.mean_distance:.3f} / "
             f"{1e3 * s.p95_distance:.3f} / {1e3 * s.max_distance:.2f} | {1e3 * s.icp_mean_distance:.3f} / "
@@ -168,11 +170,11 @@ def _render(results: dict, folder: Path, rig: Rig) -> None:
         posed = layer.pose(prepared, pose, transl=prepared.rest_joints[:, 1]).vertices[0].numpy()
         meshes = [
             MeshSpec(src, quads_to_triangles(f).numpy(), (0.55, 0.7, 0.85), "source"),
-            MeshSpec(canonical.numpy() + [0.9, 0, 0], faces, (0.85, 0.6, 0.5), "wrap"),
-            MeshSpec(posed + [1.8, 0, 0], faces, (0.85, 0.6, 0.5), "posed"),
+            MeshSpec(canonical.numpy() + [2.0, 0, 0], faces, (0.85, 0.6, 0.5), "wrap"),
+            MeshSpec(posed + [4.0, 0, 0], faces, (0.85, 0.6, 0.5), "posed"),
         ]
         path = folder / f"registration_{name.lower().replace(' ', '_').replace('-', '')}.png"
-        render_png(path, meshes, width=1500, height=700, view="front")
+        render_png(path, meshes, width=1800, height=600, view="front")
         print(f"wrote {path}")
 
 

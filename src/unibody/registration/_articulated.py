@@ -7,7 +7,15 @@ then a few Adam steps minimise a robust (Cauchy) point-to-plane + point-to-point
 over the template parameters (pose deltas, bone and size scales, global similarity), plus
 priors that keep the pose near the start and the scales near one and smooth along the
 skeleton. Phases free the parameters coarse to fine: similarity, then the body joints and
-scales, then fingers and jaw.
+scales, then fingers and jaw, then the hands alone against dense source points near them.
+
+Hands are where the chamfer has the worst local minima (fingers one finger over, two
+template fingers on one source finger, crossed fingers, straight template fingers across
+curled source ones). Three things keep them out: the "hands" phase tries nine starts per
+hand (turned about the palm normal x fingers curled or straightened) and keeps each hand's
+best; a coarse-to-fine robust scale (the bare source finger of a wrong assignment pulls
+hard under a wide loss); and finger anatomy as penalties (hinge joints only flex, knuckles
+do not twist, neighbouring fingers keep apart and in order across the palm).
 """
 
 from __future__ import annotations
@@ -161,8 +169,8 @@ def fit_articulated(
         samples: (S,) template vertex ids that take part (inner mouth/eyes left out).
         init: start parameters (their pose is also the prior's mean).
         phases: the schedule.
-        dense: ``(points, normals)`` denser source samples for "hands" phases (those within
-            ``hand_radius`` of the posed template hands take part); default ``src_points``.
+        dense: ``(points, normals)`` denser source samples for "hands"/"fingers" phases (those
+            within ``hand_radius`` m of the posed template hands take part); default ``src_points``.
         kappa: m, weight of normal differences in the pairing distance.
         prior: weight of the pose and scale priors.
     """

@@ -20,6 +20,7 @@ __all__ = [
     "as_vertices",
     "face_areas",
     "face_normals",
+    "outward",
     "sample_surface",
     "unique_edges",
     "vertex_areas",
@@ -123,3 +124,16 @@ def sample_surface(
     w = torch.cat([1 - s, s * (1 - r[:, 1:]), s * r[:, 1:]], dim=1)
     pts = (v[faces[face]] * w[..., None]).sum(1)
     return pts, face
+
+
+def outward(v: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """``faces`` wound so that normals point outward: reversed when the signed volume is negative.
+
+    The signed volume ``sum det(a, b, c) / 6`` of a closed surface is positive for outward
+    (counter-clockwise seen from outside) winding; for a nearly closed one its sign still
+    tells. Registration compares normals, so an inside-out source is flipped first; the tet
+    weights built on either winding reproduce the same points (eq. 1 uses the same order).
+    """
+    a, b, c = (v[faces[:, k]] - v.mean(0) for k in range(3))
+    volume = (a * torch.linalg.cross(b, c, dim=-1)).sum() / 6.0
+    return faces if volume >= 0 else faces[:, [0, 2, 1]]

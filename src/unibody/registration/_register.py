@@ -38,7 +38,7 @@ from ..rig import Rig
 from ._articulated import Phase, fit_articulated
 from ._closest import SurfaceIndex
 from ._labels import inner_vertices
-from ._mesh import as_triangles, as_vertices, face_areas, face_normals, sample_surface, vertex_normals
+from ._mesh import as_triangles, as_vertices, face_areas, face_normals, outward, sample_surface, vertex_normals
 from ._nonrigid import IcpSettings, nonrigid_icp
 from ._normalize import (
     Normalization,
@@ -343,7 +343,7 @@ class _Stages:
     """The registration's working state, one method per stage (kept for inspection)."""
 
     def __init__(self, config: RegistrationConfig, v: torch.Tensor, f: torch.Tensor) -> None:
-        self.config, self.v, self.f = config, v, f
+        self.config, self.v, self.f = config, v, outward(v, f)
         self.gen = torch.Generator().manual_seed(config.seed)
         self.template = _template()
         self.excluded = inner_vertices()
