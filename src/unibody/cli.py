@@ -131,8 +131,10 @@ def run_invert(seq_path: Path, out: Path, preset: str, batch: int) -> None:
         prepared = inverter.estimate_identity(vertices[:1])
         print("no identity in the file: estimated the rest shape from frame 0")
     # Resumable: finished batches go to <out>.partial.npz, keyed by the input file and settings.
+    from .assets import _sha256
+
     partial = out.with_name(out.name + ".partial.npz")
-    key = f"{_file_digest(seq_path)}:{preset}:{batch}"
+    key = f"{_sha256(seq_path)}:{preset}:{batch}"
     poses, transl, errors = _load_partial(partial, key)
     first = sum(len(p) for p in poses)
     if first:
@@ -158,16 +160,6 @@ def run_invert(seq_path: Path, out: Path, preset: str, batch: int) -> None:
     save_motion(out, motion)
     partial.unlink(missing_ok=True)
     print(f"wrote {out}: {len(err)} frames, mean per-vertex error {1e3 * float(err.mean()):.2f} mm")
-
-
-def _file_digest(path: Path) -> str:
-    import hashlib
-
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _load_partial(path: Path, key: str) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
