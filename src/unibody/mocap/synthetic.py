@@ -1,0 +1,165 @@
+"""Synthetic optical mocap for training the labeler (paper 003 §4.4).
+
+Bodies come from the native PCA shape space (all sizes and ages it spans, children
+included), poses from :func:`unibody.poses.sample_poses` (uniform heading, a fraction
+tumbling), markers from a :class:`~unibody.mocap.layout.MarkerLayout`. Per sample:
+
+- placement jitter: each marker moves to a random vertex within ``jitter_radius`` of its
+  layout vertex on the rest mesh (the paper's 1-ring, widened: our canonical mesh is
+  denser than SMPL-X's, and our layouts come from rules, not from the target lab);
+- marker-to-skin distance uniform in ``distance``; Gaussian noise of a per-frame std
+  uniform in ``noise``;
+- optional label subsets (a smaller layout inside the model's, e.g. Plug-in Gait 35
+  inside 39): the markers outside the subset are absent;
+- then :func:`~unibody.mocap.corrupt.corrupt_frames`: occlusions, ghost points, permutation.
+
+Only the marker vertices are skinned (a few hundred of the 18,056), so a batch of 256
+frames takes milliseconds: data is made on the fly, never stored.
+
+    syn = SyntheticMocap(MarkerLayout.load("pig39"), SyntheticConfig(subsets=(PIG35,)))
+    batch = syn.sample(256, torch.Generator().manual_seed(0))    # MocapBatch
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from ..body import BodyLayer, PreparedIdentity
+from ..poses import sample_poses
+from ..rig import Rig
+from .corrupt import MocapBatch, corrupt_frames
+from .layout import MarkerLayout, vertex_normals
+
+__all__ = ["SyntheticConfig", "SyntheticMocap"]
+
+
+@dataclass(frozen=True)
+class SyntheticConfig:
+    """Knobs of the synthetic mocap (defaults: the shipped labelers' training recipe).
+
+    Attributes:
+        identities: size of the pool of PCA bodies drawn once from ``pool_seed``.
+        shape_components: PCA coefficients sampled ~ N(0, shape_scale^2), the rest zero.
+        jitter_radius: m, marker placement jitter on the rest mesh.
+        distance: m, marker-to-skin distance range.
+        stick_labels, stick_distance, stick_prob: markers that labs often mount on wrist bars
+            (MoSh++ uses 0.039 m for them): per sample, with probability ``stick_prob``, they
+            sit ``stick_distance`` from the skin instead.
+        noise: m, range of the per-frame Gaussian noise std.
+        occlusions, ghosts: per-frame uniform counts (paper: up to 5 and 3).
+        subsets: label subsets of the layout, each used for ``subset_prob`` / len of the samples.
+        pose: keyword arguments of :func:`unibody.poses.sample_poses`.
+        spread: m, the Hips are placed uniformly in a square of this half-width (lab floor).
+    """
+
+    identities: int = 1024
+    pool_seed: int = 0
+    shape_components: int = 16
+    shape_scale: float = 1.0
+    jitter_radius: float = 0.02
+    distance: tuple[float, float] = (0.006, 0.02)
+    stick_labels: tuple[str, ...] = ("LWRA", "LWRB", "RWRA", "RWRB")
+    stick_distance: tuple[float, float] = (0.03, 0.06)
+    stick_prob: float = 0.5
+    noise: tuple[float, float] = (0.0, 0.004)
+    occlusions: tuple[int, int] = (0, 5)
+    ghosts: tuple[int, int] = (0, 3)
+    subsets: tuple[tuple[str, ...], ...] = ()
+    subset_prob: float = 0.3
+    pose: dict = field(default_factory=dict)
+    spread: float = 2.0
+
+
+class SyntheticMocap:
+    """Draw batches of labelled synthetic mocap frames for one layout (Y up, metres)."""
+
+    def __init__(self, layout: MarkerLayout, config: SyntheticConfig = SyntheticConfig(), *, chunk: int = 128):
+        self.layout, self.config = layout, config
+        cfg_sticks = set(config.stick_labels)
+        layer = BodyLayer.from_pca(num_components=config.shape_components)
+        self.layer = layer
+        gen = torch.Generator().manual_seed(config.pool_seed)
+        coeffs = config.shape_scale * torch.randn(config.identities, config.shape_components, generator=gen)
+        # Candidate vertices of each marker: within jitter_radius of its vertex on the mean rest mesh.
+        with torch.no_grad():
+            mean = layer.identity(torch.zeros(1, config.shape_components))[0]
+            d = torch.cdist(mean[layout.vertices], mean)  # (M, V)
+            near = d <= config.jitter_radius
+            near[torch.arange(len(layout)), layout.vertices] = True
+            used = near.any(0).nonzero().squeeze(1)  # (U,) vertex ids any marker may take
+            local = near[:, used]  # (M, U)
+            self.num_candidates = local.sum(1)  # (M,)
+            c = int(self.num_candidates.max())
+            order = torch.sort(local.to(torch.int8), dim=1, descending=True, stable=True).indices[:, :c]
+            self.candidates = order  # (M, C): indices into `used`, the first num_candidates valid
+            self.used = used
+            self.weights = layer.skin_weight.new_zeros(len(used), layer.num_joints)
+            w = torch.zeros(layer.num_vertices, dtype=torch.bool)
+            w[used] = True
+            pos = torch.full((layer.num_vertices,), -1, dtype=torch.long)
+            pos[used] = torch.arange(len(used))
+            rig = Rig.canonical()
+            sv, sj, sw = rig.skin_vertex.long(), rig.skin_joint.long(), rig.skin_weight
+            keep = w[sv]
+            self.weights[pos[sv[keep]], sj[keep]] = sw[keep].to(self.weights.dtype)
+            self.weights = self.weights.float()
+            rest, normals, rot, joints, offsets = [], [], [], [], []
+            for i in range(0, config.identities, chunk):
+                p = layer.prepare_identity(coeffs[i : i + chunk])
+                rest.append(p.rest_vertices[:, used])
+                normals.append(vertex_normals(p.rest_vertices, layer.faces)[:, used])
+                rot.append(p.rest_rotations)
+                joints.append(p.rest_joints)
+                offsets.append(p.offsets)
+        self.rest, self.normals = torch.cat(rest), torch.cat(normals)
+        self.rest_rotations, self.rest_joints, self.offsets = torch.cat(rot), torch.cat(joints), torch.cat(offsets)
+        self.stick = torch.tensor([x in cfg_sticks for x in layout.labels], dtype=torch.bool)
+        self.subset_masks = [
+            torch.tensor([x in set(s) for x in layout.labels], dtype=torch.bool) for s in config.subsets
+        ]
+
+    def markers(self, batch: int, generator: torch.Generator) -> torch.Tensor:
+        """Clean markers (B, M, 3), metres, Y up; NaN for markers outside a drawn subset."""
+        cfg, m = self.config, len(self.layout)
+        ident = torch.randint(self.rest.shape[0], (batch,), generator=generator)
+        pose = sample_poses(batch, generator, **cfg.pose)
+        transl = (2 * torch.rand(batch, 3, generator=generator) - 1) * cfg.spread
+        transl[:, 1] = 0.0
+        prepared = PreparedIdentity(
+            self.rest[ident], self.rest_rotations[ident], self.rest_joints[ident], self.offsets[ident]
+        )
+        local = self.layer._local_rotations(pose, absolute=False)
+        _, _, mats = self.layer.skin_transforms(prepared, local, transl)  # (B, J, 3, 4)
+        pick = (torch.rand(batch, m, generator=generator) * self.num_candidates).long()
+        u = self.candidates.gather(1, pick.T).T  # (B, M) indices into `used`
+        x = self.rest[ident[:, None], u]  # (B, M, 3)
+        n = self.normals[ident[:, None], u]
+        a = torch.einsum("bmj,bjrc->bmrc", self.weights[u], mats)  # blended transforms (B, M, 3, 4)
+        posed = (a[..., :3] @ x[..., None]).squeeze(-1) + a[..., 3]
+        normal = (a[..., :3] @ n[..., None]).squeeze(-1)
+        normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        lo, hi = cfg.distance
+        dist = lo + (hi - lo) * torch.rand(batch, m, 1, generator=generator)
+        if self.stick.any():
+            slo, shi = cfg.stick_distance
+            stick = slo + (shi - slo) * torch.rand(batch, m, 1, generator=generator)
+            on = (torch.rand(batch, 1, 1, generator=generator) < cfg.stick_prob) & self.stick[:, None]
+            dist = torch.where(on, stick, dist)
+        sigma = cfg.noise[0] + (cfg.noise[1] - cfg.noise[0]) * torch.rand(batch, 1, 1, generator=generator)
+        out = posed + normal * dist + sigma * torch.randn(batch, m, 3, generator=generator)
+        if self.subset_masks:
+            which = torch.randint(len(self.subset_masks), (batch,), generator=generator)
+            use = torch.rand(batch, generator=generator) < cfg.subset_prob
+            masks = torch.stack(self.subset_masks)[which]  # (B, M)
+            drop = use[:, None] & ~masks
+            out = torch.where(drop[..., None], torch.full_like(out, float("nan")), out)
+        return out
+
+    def sample(self, batch: int, generator: torch.Generator) -> MocapBatch:
+        """A corrupted, permuted batch of frames."""
+        cfg = self.config
+        with torch.no_grad():
+            clean = self.markers(batch, generator)
+            return corrupt_frames(clean, generator, occlusions=cfg.occlusions, ghosts=cfg.ghosts)

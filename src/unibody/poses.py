@@ -1,0 +1,142 @@
+"""A seeded generator of plausible body poses for the canonical rig (synthetic data).
+
+Poses are T-pose-relative axis-angle vectors (paper 001 convention, :mod:`unibody.body`):
+a joint's relative rotation acts about the axes of the T-pose world frame carried by its
+parents (X to the body's left, Y up, Z forward), so ranges read anatomically. In the T-pose
+the arms point along +-X with the palms down and the legs along -Y.
+
+Each joint draws every component of its rotation vector uniformly in ``[lo, hi]`` (radians,
+left side; the right side is mirrored), then pulls it toward a relaxed value by a per-sample
+amplitude ``s ~ U(min_amplitude, 1)``: ``v = relaxed + s (u - relaxed)``. Small amplitudes
+give everyday poses (arms down, legs straight), large ones the edges of the ranges. The
+Hips carry a uniform heading about Y; a fraction of samples (``tumble``) get a uniformly
+random orientation instead (flips, handstands, lying down).
+
+    gen = torch.Generator().manual_seed(0)
+    pose = sample_poses(256, gen)               # (256, 77, 3)
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from .rig import JOINT_NAMES
+
+__all__ = ["JOINT_RANGES", "sample_poses"]
+
+# name: ((lo_x, lo_y, lo_z), (hi_x, hi_y, hi_z), (relaxed_x, relaxed_y, relaxed_z)), left side, radians.
+# Arms: about Z lowers (-) / raises (+) the arm, about Y swings it forward (-) / back (+), about X
+# twists it. Legs: about X flexes the hip forward (-) / the knee backward (+).
+JOINT_RANGES: dict[str, tuple[tuple[float, float, float], ...]] = {
+    "Spine1": ((-0.15, -0.2, -0.15), (0.35, 0.2, 0.15), (0.0, 0.0, 0.0)),
+    "Spine2": ((-0.15, -0.2, -0.15), (0.35, 0.2, 0.15), (0.0, 0.0, 0.0)),
+    "Chest": ((-0.1, -0.2, -0.1), (0.25, 0.2, 0.1), (0.0, 0.0, 0.0)),
+    "Neck1": ((-0.25, -0.35, -0.2), (0.35, 0.35, 0.2), (0.0, 0.0, 0.0)),
+    "Neck2": ((-0.2, -0.3, -0.15), (0.3, 0.3, 0.15), (0.0, 0.0, 0.0)),
+    "Head": ((-0.2, -0.3, -0.15), (0.3, 0.3, 0.15), (0.0, 0.0, 0.0)),
+    "LeftShoulder": ((-0.1, -0.3, -0.15), (0.1, 0.2, 0.3), (0.0, 0.0, 0.0)),
+    "LeftArm": ((-0.9, -1.5, -1.45), (0.9, 0.7, 1.2), (0.0, -0.1, -1.2)),
+    "LeftForeArm": ((-1.0, -2.4, -0.1), (1.2, 0.0, 0.1), (0.3, -0.3, 0.0)),
+    "LeftHand": ((-0.3, -0.4, -1.0), (0.3, 0.4, 0.9), (0.0, 0.0, 0.0)),
+    "LeftLeg": ((-2.0, -0.6, -0.4), (0.5, 0.6, 1.0), (0.0, 0.0, 0.05)),
+    "LeftShin": ((0.0, -0.2, -0.05), (2.3, 0.2, 0.05), (0.1, 0.0, 0.0)),
+    "LeftFoot": ((-0.8, -0.3, -0.3), (0.5, 0.3, 0.3), (0.0, 0.0, 0.0)),
+    "LeftToeBase": ((-0.5, -0.05, -0.05), (0.3, 0.05, 0.05), (0.0, 0.0, 0.0)),
+}
+_FINGER_CURL = (-1.2, 0.15, -0.3)  # about Z (palm down: - curls the finger), lo, hi, relaxed
+
+
+def _mirror(v: torch.Tensor) -> torch.Tensor:
+    """Reflect rotation vectors through the body's sagittal plane (x -> -x): (x, y, z) -> (x, -y, -z)."""
+    return v * v.new_tensor([1.0, -1.0, -1.0])
+
+
+def _uniform(n: int, lo, hi, gen: torch.Generator, dtype: torch.dtype) -> torch.Tensor:
+    lo, hi = torch.tensor(lo, dtype=dtype), torch.tensor(hi, dtype=dtype)
+    return lo + (hi - lo) * torch.rand(n, *lo.shape, generator=gen, dtype=dtype)
+
+
+def _random_rotations(n: int, gen: torch.Generator, dtype: torch.dtype) -> torch.Tensor:
+    """(n, 3, 3) rotations uniform on SO(3) (normalised Gaussian quaternions)."""
+    q = torch.randn(n, 4, generator=gen, dtype=dtype)
+    q = q / q.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).view(n, 3, 3)  # fmt: skip
+
+
+def sample_poses(
+    n: int,
+    generator: torch.Generator,
+    *,
+    min_amplitude: float = 0.2,
+    tilt: float = 0.3,
+    tumble: float = 0.1,
+    fingers: bool = True,
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
+    """Sample ``n`` body poses.
+
+    Args:
+        n: number of poses.
+        generator: the random stream (the result is a function of its state).
+        min_amplitude: lower end of the per-sample amplitude in [0, 1] (see the module docstring).
+        tilt: radians, the largest pitch/roll of the Hips for upright samples.
+        tumble: fraction of samples with a uniformly random Hips orientation.
+        fingers: whether fingers curl (else they stay straight, as in the T-pose).
+        dtype: float32 or float64.
+
+    Returns:
+        (n, 77, 3) axis-angle T-pose-relative local rotations of joints 1..77.
+    """
+    if not isinstance(n, int) or n < 0:
+        raise ValueError(f"n: expected a non-negative int, got {n!r}")
+    if not 0.0 <= min_amplitude <= 1.0:
+        raise ValueError(f"min_amplitude: expected a value in [0, 1], got {min_amplitude}")
+    if not 0.0 <= tumble <= 1.0:
+        raise ValueError(f"tumble: expected a fraction in [0, 1], got {tumble}")
+    index = {name: i - 1 for i, name in enumerate(JOINT_NAMES)}  # pose rows are joints 1..77
+    pose = torch.zeros(n, len(JOINT_NAMES) - 1, 3, dtype=dtype)
+    amp = min_amplitude + (1.0 - min_amplitude) * torch.rand(n, 1, generator=generator, dtype=dtype)
+
+    def draw(lo, hi, relaxed) -> torch.Tensor:
+        u = _uniform(n, lo, hi, generator, dtype)
+        r = torch.tensor(relaxed, dtype=dtype)
+        return r + amp * (u - r)
+
+    for name, (lo, hi, relaxed) in JOINT_RANGES.items():
+        for side in ("Left", "Right") if name.startswith("Left") else ("",):
+            v = draw(lo, hi, relaxed)
+            if side == "Right":
+                name_r = "Right" + name[4:]
+                pose[:, index[name_r]] = _mirror(v)
+            else:
+                pose[:, index[name]] = v
+    if fingers:
+        lo, hi, relaxed = _FINGER_CURL
+        for side, sign in (("Left", 1.0), ("Right", -1.0)):
+            curl = draw((lo,), (hi,), (relaxed,))  # one curl per hand, shared by its fingers, plus spread
+            for finger in ("Index", "Middle", "Ring", "Pinky"):
+                for k in (1, 2, 3):
+                    jitter = 0.15 * torch.randn(n, 1, generator=generator, dtype=dtype)
+                    pose[:, index[f"{side}Hand{finger}{k}"], 2] = sign * (curl + jitter).squeeze(-1)
+            thumb = 0.3 * torch.randn(n, 3, generator=generator, dtype=dtype)
+            pose[:, index[f"{side}HandThumb2"]] = thumb if sign > 0 else _mirror(thumb)
+    # Hips: heading about Y, small tilt; a `tumble` fraction uniformly random.
+    heading = (2 * torch.rand(n, generator=generator, dtype=dtype) - 1) * torch.pi
+    tilt_v = (2 * torch.rand(n, 3, generator=generator, dtype=dtype) - 1) * tilt
+    tilt_v[:, 1] = 0.0
+    root = axis_angle_to_matrix(heading[:, None] * torch.tensor([0.0, 1.0, 0.0], dtype=dtype))
+    root = root @ axis_angle_to_matrix(tilt_v)
+    tumbling = torch.rand(n, generator=generator, dtype=dtype) < tumble
+    if bool(tumbling.any()):
+        root[tumbling] = _random_rotations(int(tumbling.sum()), generator, dtype)
+    pose[:, index["Hips"]] = matrix_to_axis_angle(root)
+    return pose

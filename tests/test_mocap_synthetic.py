@@ -1,0 +1,128 @@
+"""Marker layouts, the pose generator and synthetic mocap: placement, statistics, exactness."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from unibody.mocap.layout import MarkerLayout, available_layouts, place_markers, vertex_normals
+from unibody.mocap.synthetic import SyntheticConfig, SyntheticMocap
+from unibody.poses import sample_poses
+from unibody.rig import joint_index
+
+
+def test_shipped_layouts():
+    assert {"pig35", "pig39", "cmu41", "superset"} <= set(available_layouts())
+    sizes = {name: len(MarkerLayout.load(name)) for name in ("pig35", "pig39", "cmu41")}
+    assert sizes == {"pig35": 35, "pig39": 39, "cmu41": 41}
+    sup = MarkerLayout.load("superset")
+    for name in ("pig39", "cmu41"):
+        lay = MarkerLayout.load(name)
+        shared = [x for x in lay.labels if x in sup.labels]
+        assert torch.equal(sup.subset(shared).vertices, lay.subset(shared).vertices)
+    assert set(MarkerLayout.load("pig35").labels) < set(MarkerLayout.load("pig39").labels)
+
+
+def test_layout_json_round_trip(tmp_path):
+    lay = MarkerLayout.load("cmu41")
+    lay.save(tmp_path / "x.json")
+    back = MarkerLayout.load(tmp_path / "x.json")
+    assert back.labels == lay.labels and torch.equal(back.vertices, lay.vertices)
+    assert torch.allclose(back.distance, lay.distance)
+    with pytest.raises(ValueError, match="unknown layout"):
+        MarkerLayout.load("nope")
+    with pytest.raises(ValueError, match="duplicate"):
+        MarkerLayout("x", ("A", "A"), torch.tensor([0, 1]), torch.zeros(2))
+    with pytest.raises(ValueError, match="not in layout"):
+        lay.index("XYZ")
+
+
+def test_layout_is_anatomical(body_pca_mean):
+    """Left markers lie on the body's left (+X), mirrored pairs are symmetric, heights are ordered."""
+    v = body_pca_mean
+    lay = MarkerLayout.load("superset")
+    p = {x: v[i] for x, i in zip(lay.labels, lay.vertices)}
+    for x in lay.labels:
+        if x[0] == "L" and "R" + x[1:] in p:
+            assert p[x][0] > 0.02 and p["R" + x[1:]][0] < -0.02, x
+            mirrored = p["R" + x[1:]] * torch.tensor([-1.0, 1.0, 1.0])
+            assert (p[x] - mirrored).norm() < 0.02, x
+    order = ["LHEE", "LANK", "LKNE", "LTHI", "LASI", "STRN", "CLAV", "LFHD"]
+    heights = [float(p[x][1]) for x in order]
+    assert heights == sorted(heights)
+    assert p["STRN"][2] > 0.05 and p["T10"][2] < -0.05  # front / back
+
+
+@pytest.fixture(scope="module")
+def body_pca_mean():
+    from unibody.body import BodyLayer
+
+    layer = BodyLayer.from_pca(num_components=1)
+    out = layer(torch.zeros(1, 1), torch.zeros(1, 77, 3))
+    return out.vertices[0]
+
+
+def test_place_markers_offsets_along_normals():
+    v = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]]).double()
+    f = torch.tensor([[0, 1, 2]])
+    n = vertex_normals(v, f)
+    assert torch.allclose(n, torch.tensor([0.0, 0.0, 1.0]).double().expand(1, 3, 3))
+    m = place_markers(v, f, torch.tensor([1, 2]), torch.tensor([0.01, 0.02]))
+    assert torch.allclose(m, torch.tensor([[[1.0, 0, 0.01], [0, 1, 0.02]]]).double())
+
+
+def test_sample_poses_seeded_and_plausible():
+    a = sample_poses(64, torch.Generator().manual_seed(0))
+    b = sample_poses(64, torch.Generator().manual_seed(0))
+    assert a.shape == (64, 77, 3) and torch.equal(a, b)
+    assert torch.isfinite(a).all()
+    knee = a[:, joint_index("LeftShin") - 1, 0]
+    assert (knee >= -1e-6).all() and (knee <= 2.3 + 1e-6).all()  # knees never hyperextend
+    # the right side mirrors the left's range: knee flexion is about +X on both sides
+    assert (a[:, joint_index("RightShin") - 1, 0] >= -1e-6).all()
+    assert a[:, joint_index("LeftEye") - 1].abs().max() == 0
+    with pytest.raises(ValueError, match="tumble"):
+        sample_poses(2, torch.Generator(), tumble=2.0)
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    cfg = SyntheticConfig(identities=8, jitter_radius=0.0, distance=(0.01, 0.01), noise=(0.0, 0.0), spread=0.0, stick_prob=0.0)
+    return SyntheticMocap(MarkerLayout.load("pig39"), cfg)
+
+
+def test_synthetic_markers_match_full_mesh(synthetic):
+    """Skinning only the marker vertices equals posing the whole mesh (exact without skin offset)."""
+    syn = synthetic
+    cfg = SyntheticConfig(identities=8, jitter_radius=0.0, distance=(0.0, 0.0), noise=(0.0, 0.0), spread=0.0, stick_prob=0.0)
+    syn0 = SyntheticMocap(syn.layout, cfg)
+    g = torch.Generator().manual_seed(5)
+    m = syn0.markers(4, g)
+    g = torch.Generator().manual_seed(5)
+    ident = torch.randint(8, (4,), generator=g)
+    pose = sample_poses(4, g)
+    coeffs = torch.randn(8, 16, generator=torch.Generator().manual_seed(0))
+    out = syn0.layer(coeffs[ident], pose)
+    ref = place_markers(out.vertices, syn0.layer.faces, syn0.layout.vertices, torch.zeros(len(syn0.layout)))
+    assert (ref - m).abs().max() < 1e-4
+    # with a skin offset the markers sit that far from their vertex, off the skin
+    m1 = syn.markers(4, torch.Generator().manual_seed(5))
+    assert torch.allclose((m1 - m).norm(dim=-1), torch.full((4, 39), 0.01), atol=1e-4)
+
+
+def test_synthetic_jitter_and_subsets():
+    lay = MarkerLayout.load("pig39")
+    pig35 = MarkerLayout.load("pig35").labels
+    cfg = SyntheticConfig(identities=4, jitter_radius=0.02, subsets=(pig35,), subset_prob=0.5, noise=(0.0, 0.0))
+    syn = SyntheticMocap(lay, cfg)
+    assert (syn.num_candidates > 1).all()
+    rest_mean = syn.layer.identity(torch.zeros(1, 16))[0]
+    cand = syn.used[syn.candidates]  # (M, C) vertex ids
+    for i in range(len(lay)):
+        ids = cand[i, : syn.num_candidates[i]]
+        assert (rest_mean[ids] - rest_mean[lay.vertices[i]]).norm(dim=-1).max() <= 0.02 + 1e-6
+    m = syn.markers(2000, torch.Generator().manual_seed(0))
+    extra = torch.tensor([x not in pig35 for x in lay.labels])
+    dropped = m[:, extra].isnan().any(-1).all(-1).float().mean()
+    assert abs(float(dropped) - 0.5) < 0.05
+    assert not m[:, ~extra].isnan().any()
