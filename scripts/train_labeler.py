@@ -1,0 +1,178 @@
+"""Train a mocap labeler for one marker layout on synthetic mocap (paper 003 §4.4-4.5).
+
+    python scripts/train_labeler.py --layout pig39 --subsets pig35 --out build/labeler_pig39 --steps 6000
+    python scripts/train_labeler.py --layout cmu41 --out build/labeler_cmu41 --steps 6000
+
+Data is drawn on the fly from :class:`unibody.mocap.synthetic.SyntheticMocap` (a pool of
+PCA bodies from ``--pool-seed``, seeded poses, jitter, noise, occlusions, ghosts). Validation
+uses a fixed set from a disjoint body pool and random stream. Resumable: a checkpoint is
+written every ``--checkpoint-every`` seconds and on Ctrl-C; rerunning the same command
+continues from it (model, optimiser, schedule and random state). The final weights go to
+``<out>/labeler.pt`` with the command, seed, steps and validation metrics in their metadata.
+No real mocap is used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from unibody.mocap.corrupt import MocapBatch
+from unibody.mocap.labeler import Labeler, labeling_loss, predict
+from unibody.mocap.layout import MarkerLayout
+from unibody.mocap.synthetic import SyntheticConfig, SyntheticMocap
+
+
+def synthetic(layout: MarkerLayout, subsets: list[str], pool_seed: int, identities: int) -> SyntheticMocap:
+    subs = tuple(MarkerLayout.load(s).labels for s in subsets)
+    return SyntheticMocap(layout, SyntheticConfig(identities=identities, pool_seed=pool_seed, subsets=subs))
+
+
+def accuracy(model: Labeler, batches: list[MocapBatch]) -> tuple[float, float]:
+    """Per-point accuracy over real points, and over marker points only."""
+    right = total = right_m = total_m = 0
+    model.eval()
+    with torch.no_grad():
+        for b in batches:
+            pred, _ = predict(model(b.points, b.mask), b.mask)
+            ok = (pred == b.labels) & b.mask
+            marker = b.mask & (b.labels < model.num_labels)
+            right, total = right + int(ok.sum()), total + int(b.mask.sum())
+            right_m, total_m = right_m + int((ok & marker).sum()), total_m + int(marker.sum())
+    model.train()
+    return right / max(total, 1), right_m / max(total_m, 1)
+
+
+def git_rev() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--layout", required=True, help="shipped layout name or layout JSON")
+    p.add_argument("--subsets", nargs="*", default=[], help="smaller layouts also drawn (their labels only)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--steps", type=int, default=6000)
+    p.add_argument("--batch", type=int, default=256)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--weight-decay", type=float, default=5e-5)
+    p.add_argument("--warmup", type=int, default=200)
+    p.add_argument("--width", type=int, default=96)
+    p.add_argument("--layers", type=int, default=4)
+    p.add_argument("--heads", type=int, default=4)
+    p.add_argument("--identities", type=int, default=1024)
+    p.add_argument("--pool-seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--val-frames", type=int, default=2048)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--checkpoint-every", type=float, default=120.0, help="seconds")
+    p.add_argument("--log-every", type=float, default=20.0, help="seconds")
+    p.add_argument("--stop-at", type=int, help="checkpoint and stop after this step (resume later)")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    ckpt_path = args.out / "checkpoint.pt"
+
+    layout = MarkerLayout.load(args.layout)
+    train_data = synthetic(layout, args.subsets, args.pool_seed, args.identities)
+    val_data = synthetic(layout, args.subsets, args.pool_seed + 1000, 256)  # disjoint bodies
+    val_gen = torch.Generator().manual_seed(10_000 + args.seed)
+    val = [val_data.sample(min(256, args.val_frames), val_gen) for _ in range(max(1, args.val_frames // 256))]
+
+    torch.manual_seed(args.seed)
+    model = Labeler(len(layout), label_names=layout.labels, width=args.width, layers=args.layers, heads=args.heads)
+    opt = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
+
+    def lr_at(step: int) -> float:  # linear warm-up, then cosine to 2 % of the base rate
+        if step < args.warmup:
+            return args.lr * (step + 1) / args.warmup
+        t = (step - args.warmup) / max(1, args.steps - args.warmup)
+        return args.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(t, 1.0))))
+
+    gen = torch.Generator().manual_seed(args.seed)
+    step = 0
+    if ckpt_path.exists():
+        state = torch.load(ckpt_path, weights_only=True)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["opt"])
+        gen.set_state(state["gen"])
+        step = int(state["step"])
+        print(f"resumed from {ckpt_path} at step {step}", flush=True)
+
+    def save_checkpoint() -> None:
+        tmp = ckpt_path.with_suffix(".tmp")
+        torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "gen": gen.get_state(), "step": step}, tmp)
+        tmp.replace(ckpt_path)
+
+    stop = {"now": False}
+    previous = {sig: signal.signal(sig, lambda *_: stop.update(now=True)) for sig in (signal.SIGINT, signal.SIGTERM)}
+    t0 = t_log = t_ckpt = time.time()
+    step0, loss_avg = step, None
+    end = args.steps if args.stop_at is None else min(args.steps, args.stop_at)
+    while step < end and not stop["now"]:
+        for group in opt.param_groups:
+            group["lr"] = lr_at(step)
+        batch = train_data.sample(args.batch, gen)
+        loss = labeling_loss(model(batch.points, batch.mask), batch)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite loss at step {step}")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+        opt.step()
+        step += 1
+        loss_avg = float(loss.detach()) if loss_avg is None else 0.98 * loss_avg + 0.02 * float(loss.detach())
+        now = time.time()
+        if now - t_log >= args.log_every or step == args.steps:
+            rate = (step - step0) / (now - t0)
+            acc, acc_m = accuracy(model, val[:2])
+            eta = (args.steps - step) / max(rate, 1e-9)
+            print(
+                f"step {step}/{args.steps} loss {loss_avg:.4f} val acc {acc:.4f} (markers {acc_m:.4f}) "
+                f"lr {lr_at(step):.2e} {rate:.2f} steps/s ETA {eta / 60:.1f} min",
+                flush=True,
+            )
+            t_log = now
+        if now - t_ckpt >= args.checkpoint_every:
+            save_checkpoint()
+            t_ckpt = now
+    for sig, handler in previous.items():
+        signal.signal(sig, handler)
+    save_checkpoint()
+    if step < args.steps:
+        print(f"stopped at step {step}; rerun the same command to resume", flush=True)
+        if stop["now"]:
+            sys.exit(130)
+        return
+    acc, acc_m = accuracy(model, val)
+    given = sys.argv[1:] if argv is None else argv
+    command = "python scripts/train_labeler.py " + " ".join(shlex.quote(a) for a in given)
+    meta = {
+        "command": command,
+        "seed": args.seed,
+        "steps": step,
+        "layout": layout.name,
+        "subsets": args.subsets,
+        "synthetic_val_accuracy": round(acc, 5),
+        "synthetic_val_marker_accuracy": round(acc_m, 5),
+        "val_frames": sum(len(b.points) for b in val),
+        "git_rev": git_rev(),
+        "torch": str(torch.__version__),
+    }
+    model.save(args.out / "labeler.pt", meta)
+    print(f"wrote {args.out / 'labeler.pt'}: synthetic val accuracy {acc:.4f} (markers {acc_m:.4f})", flush=True)
+
+
+if __name__ == "__main__":
+    main()

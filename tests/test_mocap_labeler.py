@@ -1,0 +1,225 @@
+"""Labeler network, loss, decoding, label_frames, save/load, and the training script (toy data)."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from unibody.mocap.corrupt import MocapBatch
+from unibody.mocap.labeler import Labeler, label_frames, labeling_loss, predict
+from unibody.mocap.metrics import labeling_scores
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "train_labeler.py"
+
+
+def _toy_batch(frames=8, num_labels=12, ghosts=(1, 2), occluded=(0, 1), seed=0, dtype=torch.float32):
+    """Random "bodies": one template of labelled points, per-frame jitter, a heading about Y,
+    ghosts near the frame, occlusions, and a random order of the real points (padding last)."""
+    g = torch.Generator().manual_seed(seed)
+    template = 0.4 * torch.randn(num_labels, 3, generator=g, dtype=dtype)
+    n = num_labels + ghosts[1]
+    points = torch.zeros(frames, n, 3, dtype=dtype)
+    labels = torch.full((frames, n), num_labels, dtype=torch.long)
+    mask = torch.zeros(frames, n, dtype=torch.bool)
+    available = torch.zeros(frames, num_labels, dtype=torch.bool)
+    for f in range(frames):
+        a = float(torch.rand((), generator=g)) * 2 * math.pi
+        rot = torch.tensor([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]], dtype=dtype)
+        body = (template + 0.03 * torch.randn(num_labels, 3, generator=g, dtype=dtype)) @ rot.T
+        body = body + torch.tensor([0.0, 1.0, 0.0], dtype=dtype)
+        n_occ = int(torch.randint(occluded[0], occluded[1] + 1, (), generator=g))
+        keep = torch.randperm(num_labels, generator=g)[: num_labels - n_occ].sort().values
+        n_gh = int(torch.randint(ghosts[0], ghosts[1] + 1, (), generator=g))
+        gh = body[keep].median(0).values + 0.3 * torch.randn(n_gh, 3, generator=g, dtype=dtype)
+        pts = torch.cat([body[keep], gh])
+        lab = torch.cat([keep, torch.full((n_gh,), num_labels)])
+        perm = torch.randperm(len(pts), generator=g)
+        points[f, : len(pts)] = pts[perm]
+        labels[f, : len(pts)] = lab[perm]
+        mask[f, : len(pts)] = True
+        available[f, keep] = True
+    return MocapBatch(points, mask, labels, available)
+
+
+def _small(num_labels=12, **kw):
+    torch.manual_seed(0)
+    return Labeler(num_labels, width=32, layers=2, heads=2, **kw)
+
+
+def test_overfit_tiny_set():
+    torch.manual_seed(0)
+    batch = _toy_batch()
+    model = _small()
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    for _ in range(400):
+        loss = labeling_loss(model(batch.points, batch.mask), batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    with torch.no_grad():
+        labels, conf = predict(model(batch.points, batch.mask), batch.mask)
+    assert torch.equal(labels[batch.mask], batch.labels[batch.mask]), float(loss)
+    assert float(conf[batch.mask].min()) > 0.5
+    scores = labeling_scores(labels[batch.mask], batch.labels[batch.mask], null=12)
+    assert scores["accuracy"] == 1.0 and scores["f1"] == 1.0
+
+
+def test_equivariance_translation_and_padding():
+    batch = _toy_batch(frames=3, seed=1)
+    model = _small().eval()
+    with torch.no_grad():
+        ref = model(batch.points, batch.mask)
+        # permuting the points permutes the plan rows
+        perm = torch.randperm(batch.points.shape[1], generator=torch.Generator().manual_seed(2))
+        out = model(batch.points[:, perm], batch.mask[:, perm])
+        torch.testing.assert_close(out[:, :-1], ref[:, :-1][:, perm], atol=1e-4, rtol=1e-4)
+        # a shift of the whole frame is removed by the median centring
+        out = model(batch.points + torch.tensor([3.0, -1.0, 2.0]), batch.mask)
+        m = torch.cat([batch.mask, torch.ones(3, 1, dtype=torch.bool)], 1)
+        torch.testing.assert_close(out[m], ref[m], atol=1e-4, rtol=1e-4)
+        # extra padding slots (holding garbage) change nothing for the real rows
+        pad_pts = torch.cat([batch.points, 5 * torch.ones(3, 4, 3)], 1)
+        pad_mask = torch.cat([batch.mask, torch.zeros(3, 4, dtype=torch.bool)], 1)
+        out = model(pad_pts, pad_mask)
+        n = batch.points.shape[1]
+        torch.testing.assert_close(out[:, :n][batch.mask], ref[:, :n][batch.mask], atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(out[:, -1], ref[:, -1], atol=1e-4, rtol=1e-4)
+
+
+def test_loss_matches_hand_computation():
+    # one frame, 3 slots (marker 1, a ghost, padding), L = 2 labels: label 0 unmatched
+    logp = torch.log(torch.rand(1, 4, 3, generator=torch.Generator().manual_seed(0)))
+    batch = MocapBatch(
+        torch.zeros(1, 3, 3),
+        torch.tensor([[True, True, False]]),
+        torch.tensor([[1, 2, 2]]),
+        torch.tensor([[False, True]]),
+    )
+    # rows: point 0 -> label 1 (w 1), ghost -> null column (w 1/1); dustbin row: label 0 (w 1/1)
+    expected = -(logp[0, 0, 1] + logp[0, 1, 2] + logp[0, 3, 0]) / 3
+    torch.testing.assert_close(labeling_loss(logp, batch), expected)
+    # two ghosts: their rows and the dustbin row weigh 1/2
+    batch2 = MocapBatch(batch.points, torch.tensor([[True, True, True]]), torch.tensor([[1, 2, 2]]), batch.available)
+    expected2 = -(logp[0, 0, 1] + 0.5 * (logp[0, 1, 2] + logp[0, 2, 2] + logp[0, 3, 0])) / 4
+    torch.testing.assert_close(labeling_loss(logp, batch2), expected2)
+
+
+def test_loss_finite_all_null_and_empty_frames():
+    model = _small(num_labels=4)
+    pts = torch.randn(3, 5, 3)
+    mask = torch.tensor([[True] * 5, [False] * 5, [True, True, False, False, False]])
+    labels = torch.full((3, 5), 4)  # every point is a ghost; frame 1 has no points at all
+    batch = MocapBatch(pts, mask, labels, torch.zeros(3, 4, dtype=torch.bool))
+    loss = labeling_loss(model(pts, mask), batch)
+    assert torch.isfinite(loss)
+    loss.backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+    labels, conf = predict(model(pts, mask).detach(), mask)
+    assert (labels[~mask] == 4).all() and (conf[~mask] == 0).all()
+
+
+def test_predict_never_duplicates():
+    g = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        logp = torch.randn(16, 9, 5, generator=g) * 3  # random "plans": many argmax collisions
+        mask = torch.rand(16, 8, generator=g) > 0.2
+        labels, conf = predict(logp, mask)
+        for b in range(16):
+            real = labels[b][labels[b] != 4]
+            assert len(real) == len(real.unique())
+        assert (labels[~mask] == 4).all()
+
+
+def test_predict_keeps_most_confident():
+    p = torch.tensor([[0.6, 0.3, 0.1], [0.9, 0.05, 0.05], [0.6, 0.1, 0.3], [0.2, 0.7, 0.1]])
+    logp = torch.cat([p, torch.ones(1, 3)]).log()[None]  # last row: the (unused) dustbin row
+    labels, conf = predict(logp, torch.ones(1, 4, dtype=torch.bool))
+    # points 0, 1, 2 all want label 0: point 1 (0.9) keeps it, 0 and 2 become null (label 2)
+    assert labels.tolist() == [[2, 0, 2, 1]]
+    torch.testing.assert_close(conf, torch.tensor([[0.1, 0.9, 0.3, 0.7]]))
+
+
+def test_label_frames_nan_and_batches():
+    model = _small()  # in training mode: label_frames runs it in eval mode and restores the mode
+    batch = _toy_batch(frames=5, seed=3)
+    pts = torch.where(batch.mask[..., None], batch.points, torch.nan)
+    pts[2, 0] = torch.nan  # hide one more point
+    visible = torch.isfinite(pts).all(2)
+    out = label_frames(model, pts, batch=2)
+    assert model.training
+    assert out.shape == visible.shape and (out[~visible] == 12).all()
+    with torch.no_grad():
+        ref, _ = predict(model.eval()(torch.nan_to_num(pts), visible), visible)
+    assert torch.equal(out, ref)
+
+
+def test_float64_and_save_load(tmp_path):
+    model = _small(label_names=[f"M{i}" for i in range(12)]).double().eval()
+    batch = _toy_batch(frames=2, seed=4, dtype=torch.float64)
+    path = tmp_path / "labeler.pt"
+    model.save(path, {"seed": 7, "val": {"accuracy": 0.5}, "command": "x y"})
+    loaded = Labeler.load(path).double().eval()
+    assert loaded.label_names == model.label_names and loaded.meta["val"]["accuracy"] == 0.5
+    assert loaded.config == model.config
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(batch.points, batch.mask), model(batch.points, batch.mask))
+    with pytest.raises(TypeError, match=r"meta\['when'\]: expected str"):
+        model.save(path, {"when": torch.__version__})  # a str subclass that weights_only cannot load
+    torch.save({"format": "something else"}, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="expected a 'unibody.labeler/1' file"):
+        Labeler.load(tmp_path / "bad.pt")
+
+
+def test_errors():
+    model = _small()
+    pts, mask = torch.zeros(2, 5, 3), torch.ones(2, 5, dtype=torch.bool)
+    with pytest.raises(ValueError, match="mask: expected shape"):
+        model(pts, mask[:, :4])
+    with pytest.raises(TypeError, match="mask: expected a bool"):
+        model(pts, mask.float())
+    with pytest.raises(TypeError, match="points: is float64"):
+        model(pts.double(), mask)
+    with pytest.raises(ValueError, match="points: expected finite"):
+        model(torch.full((2, 5, 3), torch.nan), mask)
+    with pytest.raises(ValueError, match="width/heads"):
+        Labeler(12, width=30, heads=4)
+    with pytest.raises(ValueError, match="label_names: expected 12"):
+        Labeler(12, label_names=["a"])
+    bad = MocapBatch(pts, mask, torch.full((2, 5), 13), torch.zeros(2, 12, dtype=torch.bool))
+    with pytest.raises(ValueError, match="batch.labels: real points need labels"):
+        labeling_loss(model(pts, mask), bad)
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("train_labeler", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _args(out, seed=3, *extra):
+    return ["--layout", "cmu41", "--steps", "12", "--batch", "16", "--seed", str(seed), "--threads", "1",
+            "--width", "16", "--layers", "1", "--heads", "2", "--val-frames", "32", "--identities", "8",
+            "--log-every", "1000", "--out", str(out), *extra]  # fmt: skip
+
+
+def test_training_script_resumes_bit_identically(tmp_path):
+    mod = _script()
+    mod.main(_args(tmp_path / "a"))
+    mod.main(_args(tmp_path / "b", 3, "--stop-at", "7"))
+    assert (tmp_path / "b" / "checkpoint.pt").exists() and not (tmp_path / "b" / "labeler.pt").exists()
+    mod.main(_args(tmp_path / "b"))
+    a, b = Labeler.load(tmp_path / "a" / "labeler.pt"), Labeler.load(tmp_path / "b" / "labeler.pt")
+    for (k, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+        assert torch.equal(x, y), k
+    assert a.meta["steps"] == 12 and a.meta["seed"] == 3 and "--layout cmu41" in a.meta["command"]
+    assert a.meta["synthetic_val_accuracy"] == b.meta["synthetic_val_accuracy"]
+    # a different seed trains a different model (so the comparison above can fail)
+    mod.main(_args(tmp_path / "c", 4))
+    c = Labeler.load(tmp_path / "c" / "labeler.pt")
+    assert not torch.equal(c.bin_score, a.bin_score)
