@@ -198,8 +198,12 @@ def run_pose(motion_path: Path, out: Path, procedural: bool = False) -> None:
     from .io.motion import load_motion
 
     motion = load_motion(motion_path)
-    layer = BodyLayer.from_anny(procedural=procedural)
-    params = np.full((1, 6), 0.5, np.float32) if motion.identity is None else motion.identity[None]
+    if motion.identity_backend == "pca" and motion.identity is not None:  # e.g. from `unibody mocap solve`
+        layer = BodyLayer.from_pca(num_components=len(motion.identity), procedural=procedural)
+        params = motion.identity[None]
+    else:
+        layer = BodyLayer.from_anny(procedural=procedural)
+        params = np.full((1, 6), 0.5, np.float32) if motion.identity is None else motion.identity[None]
     prepared = layer.prepare_identity(torch.from_numpy(np.asarray(params, np.float32)))
     out_v = layer.pose(prepared, torch.from_numpy(motion.pose), transl=torch.from_numpy(motion.transl)).vertices
     np.savez(out, vertices=out_v.numpy(), faces=layer.faces.numpy(), topology=np.asarray("canonical"))
@@ -216,6 +220,55 @@ def _assets_info() -> None:
         f"vertices {arrays['bind_vertices'].shape[0]}, faces {arrays['faces'].shape[0]}, "
         f"joints {arrays['joint_names'].shape[0]}"
     )
+
+
+def run_mocap_label(src: Path, out: Path, model: str, up: str, tracklets: bool) -> None:
+    from .mocap.c3d import read_markers, write_c3d, write_npz
+    from .mocap.pipeline import label_sequence, load_labeler
+
+    seq = read_markers(src)
+    labeler = load_labeler(model)
+    t = time.perf_counter()
+    labelled = label_sequence(seq, labeler, up=up, tracklets=tracklets)
+    dt = time.perf_counter() - t
+    (write_c3d if out.suffix.lower() == ".c3d" else write_npz)(out, labelled)
+    found = int(labelled.visible[:, : labeler.num_labels].sum())
+    total = int(seq.visible.sum())
+    print(
+        f"labelled {seq.num_frames} frames in {dt:.1f} s ({seq.num_frames / dt:,.0f} frames/s): "
+        f"{found} of {total} points got a marker label; wrote {out}"
+    )
+
+
+def run_mocap_solve(src: Path, out: Path, layout_name: str, up: str, png: Path | None) -> None:
+    from .io.motion import save_motion
+    from .mocap.c3d import read_markers
+    from .mocap.layout import MarkerLayout
+    from .mocap.pipeline import solve_sequence
+
+    seq = read_markers(src)
+    layout = MarkerLayout.load(layout_name)
+    t = time.perf_counter()
+    result = solve_sequence(seq, layout, up=up, progress=lambda line: print("  " + line, flush=True))
+    dt = time.perf_counter() - t
+    save_motion(out, result.to_motion(seq.rate))
+    r = result.residual[torch.isfinite(result.residual)] * 1000
+    print(
+        f"solved {int(result.solved.sum())}/{seq.num_frames} frames in {dt:.1f} s ({seq.num_frames / dt:,.0f} frames/s), "
+        f"marker residual mean {float(r.mean()):.1f} mm; wrote {out} (replay: unibody pose {out} --out meshes.npz)"
+    )
+    if png is not None:
+        from .body import BodyLayer
+        from .mocap.render import render_markers
+        from .mocap.solve import lab_to_unibody
+
+        f = seq.num_frames // 2
+        k = result.identity.shape[0]
+        layer = BodyLayer.from_pca(num_components=k, dtype=torch.float64)
+        body = layer(result.identity[None].double(), result.pose[f : f + 1].double(), transl=result.transl[f : f + 1].double())
+        present = [x for x in layout.labels if x in seq.labels]
+        render_markers(png, body.vertices[0], layer.faces, lab_to_unibody(seq.select(present).points[f], up=up))
+        print(f"wrote {png} (frame {f})")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -236,6 +289,20 @@ def main(argv: list[str] | None = None) -> int:
     pose.add_argument("motion", type=Path)
     pose.add_argument("--out", type=Path, required=True)
     pose.add_argument("--procedural", action="store_true", help="with the shipped procedural twist joints")
+    mocap = sub.add_parser("mocap", help="optical mocap: label raw C3D point clouds, solve the body")
+    msub = mocap.add_subparsers(dest="mocap_command", required=True)
+    lab = msub.add_parser("label", help="raw markers (.c3d/.npz) -> labelled markers (.c3d/.npz)")
+    lab.add_argument("markers", type=Path)
+    lab.add_argument("--out", type=Path, required=True)
+    lab.add_argument("--model", default="cmu41", help="shipped labeler (cmu41 | pig39) or a weights file")
+    lab.add_argument("--up", default="z", choices=("z", "y"), help="vertical axis of the file")
+    lab.add_argument("--per-frame", action="store_true", help="no tracklet voting (each frame on its own)")
+    sol = msub.add_parser("solve", help="labelled markers (.c3d/.npz) -> unibody motion (.npz)")
+    sol.add_argument("markers", type=Path)
+    sol.add_argument("--out", type=Path, required=True)
+    sol.add_argument("--layout", default="cmu41", help="shipped layout (pig35 | pig39 | cmu41 | superset) or JSON")
+    sol.add_argument("--up", default="z", choices=("z", "y"))
+    sol.add_argument("--png", type=Path, help="also render the middle frame with its markers")
     args = parser.parse_args(argv)
     with torch.no_grad():  # a context, not a global switch: callers (tests) keep their state
         if args.command == "demo":
@@ -246,6 +313,10 @@ def main(argv: list[str] | None = None) -> int:
             run_invert(args.sequence, args.out, args.preset, args.batch)
         elif args.command == "pose":
             run_pose(args.motion, args.out, args.procedural)
+        elif args.command == "mocap" and args.mocap_command == "label":
+            run_mocap_label(args.markers, args.out, args.model, args.up, not args.per_frame)
+        elif args.command == "mocap" and args.mocap_command == "solve":
+            run_mocap_solve(args.markers, args.out, args.layout, args.up, args.png)
     return 0
 
 

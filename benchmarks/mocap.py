@@ -1,0 +1,252 @@
+"""Mocap labeling and body solve on real, labelled C3D files (paper 003 protocol; evaluation only).
+
+    OMP_NUM_THREADS=2 python benchmarks/mocap.py [--evaldata ../shared/evaldata] [--sections label speed solve]
+
+Labels are hidden from the labeler and used only to score it. Files: CMU 85_02, 85_12, 135_02
+(CMU 41 layout, ``cmu41`` model); BTKData Plug-in Gait walking / static (35 markers), pyCGM
+static + stair descent and the tennis serve (39 markers; ``pig39`` model). Unlabelled ``*``
+points in a file are real ghosts (truth: null).
+
+- **per-frame**: every frame independently, with synthetic corruption drawn per frame
+  (paper Table 1 "B+C+G"): 0-5 occluded markers, 0-3 ghost points, random permutation.
+  Also a no-noise row (permutation only) and exact occlusion counts 0..5 and 5 + 3 ghosts
+  (paper Table 2).
+- **tracklet**: the sequence keeps its columns; the same per-frame occlusions and ghosts
+  (ghosts in extra columns), 50 broken trajectories (paper §4.4), per-frame labels, then the
+  majority label per column.
+- Scores: accuracy over all real points and macro F1 over the labels present incl. null.
+- **speed**: labeling frames/s at batch 1 and 256 (forward + decoding).
+- **solve**: the body solve on the files' own labels: mean / median marker residual,
+  fraction of frames solved, frames/s of the whole solve; a PNG of one solved frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from unibody.mocap.c3d import MarkerSequence, read_markers
+from unibody.mocap.corrupt import MocapBatch, break_trajectories, corrupt_frames
+from unibody.mocap.labeler import Labeler, label_frames, predict
+from unibody.mocap.layout import MarkerLayout
+from unibody.mocap.metrics import labeling_scores
+from unibody.mocap.pipeline import load_labeler, solve_sequence
+from unibody.mocap.solve import lab_to_unibody
+from unibody.mocap.tracklets import label_tracklets
+
+FILES = {
+    "cmu41": ["c3d/cmu_85_02.c3d", "c3d/cmu_85_12.c3d", "c3d/cmu_135_02.c3d"],
+    "pig39": [
+        "c3d/btkdata_PiG_Motion-FlatFoot-Full.c3d",
+        "c3d/btkdata_PiG_Motion-FlatFoot-One.c3d",
+        "c3d/btkdata_PiG_Calibration-FlatFoot-Full.c3d",
+        "c3d/btkdata_PiG_Calibration-FlatFoot-Hole.c3d",
+        "c3d/pycgm_Static_trial.c3d",
+        "c3d/pycgm_Movement_trial.c3d",
+        "c3d/ktk_kinematics_tennis_serve.c3d",
+    ],
+}
+
+
+MAX_FRAMES: int | None = None
+
+
+def read(path: Path) -> MarkerSequence:
+    seq = read_markers(path)
+    if MAX_FRAMES is None:
+        return seq
+    return MarkerSequence(seq.points[:MAX_FRAMES], seq.labels, seq.subjects, seq.rate)
+
+
+def split(seq: MarkerSequence, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """(T, L, 3) the model's labels (NaN if absent), Y up; (T, G, 3) the file's other points."""
+    pts = lab_to_unibody(seq.points, up="z")
+    idx = {x: i for i, x in enumerate(seq.labels)}
+    marked = np.stack([pts[:, idx[x]] if x in idx else np.full(pts[:, 0].shape, np.nan) for x in names], axis=1)
+    others = [i for i, x in enumerate(seq.labels) if x not in set(names)]
+    return marked, pts[:, others]
+
+
+def with_real_ghosts(batch: MocapBatch, ghosts: torch.Tensor, null: int) -> MocapBatch:
+    """Append the file's unlabelled points (T, G, 3, NaN = absent) as null points."""
+    ok = torch.isfinite(ghosts).all(-1)
+    pts = torch.cat([batch.points, torch.where(ok[..., None], ghosts, 0.0)], dim=1)
+    labels = torch.cat([batch.labels, torch.full(ok.shape, null, dtype=torch.long)], dim=1)
+    return MocapBatch(pts, torch.cat([batch.mask, ok], dim=1), labels, batch.available)
+
+
+def per_frame(model: Labeler, marked, real_ghosts, gen, **corruption) -> tuple[np.ndarray, np.ndarray]:
+    null = model.num_labels
+    m = torch.as_tensor(marked, dtype=torch.float32)
+    g = torch.as_tensor(real_ghosts, dtype=torch.float32)
+    preds, truths = [], []
+    with torch.no_grad():
+        for s in range(0, len(m), 512):
+            b = with_real_ghosts(corrupt_frames(m[s : s + 512], gen, **corruption), g[s : s + 512], null)
+            pred, _ = predict(model(b.points, b.mask), b.mask)
+            preds.append(pred[b.mask])
+            truths.append(b.labels[b.mask])
+    return torch.cat(preds), torch.cat(truths)
+
+
+def tracklet(model: Labeler, marked, ghosts, gen: torch.Generator, rng) -> dict[str, tuple]:
+    """Columns kept: occlusions / ghosts per frame, 50 broken trajectories, majority vote per column."""
+    null = model.num_labels
+    t, nl, _ = marked.shape
+    seq = np.concatenate([marked, ghosts, np.full((t, 3, 3), np.nan)], axis=1)
+    truth_col = np.concatenate([np.arange(nl), np.full(seq.shape[1] - nl, null)])
+    vis = np.isfinite(seq).all(-1)
+    # occlusions: 0..5 of the visible labelled markers per frame
+    for f in range(t):
+        cand = np.nonzero(vis[f, :nl])[0]
+        k = min(int(rng.integers(0, 6)), len(cand))
+        seq[f, rng.choice(cand, k, replace=False)] = np.nan
+        # ghosts: 0..3 from N(median, std) of the visible markers, in the 3 spare columns
+        visible = seq[f, :nl][np.isfinite(seq[f, :nl]).all(-1)]
+        for j in range(int(rng.integers(0, 4))):
+            seq[f, -3 + j] = np.median(visible, 0) + visible.std(0) * rng.standard_normal(3)
+    broken, source = break_trajectories(seq, 50, rng)
+    truth = truth_col[source]
+    vis = np.isfinite(broken).all(-1)
+    frame = label_frames(model, torch.as_tensor(broken, dtype=torch.float32))
+    vis = torch.from_numpy(vis)
+    track = label_tracklets(frame, vis, null)
+    truth_tn = torch.from_numpy(truth).expand(vis.shape)
+    return {"frame": (frame[vis], truth_tn[vis]), "tracklet": (track[vis], truth_tn[vis])}
+
+
+def fmt(scores: dict) -> str:
+    return f"{100 * scores['accuracy']:6.2f} {100 * scores['f1']:6.2f}"
+
+
+def label_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
+    print("\n## Labeling (accuracy / macro F1, %; labels hidden)")
+    print(
+        "| file | model | frames | no noise | per-frame C+G | tracklet: per-frame | tracklet |\n"
+        "|---|---|---|---|---|---|---|"
+    )
+    table2: dict[str, list] = {}
+    pooled: dict[str, dict[str, list]] = {}
+    for name, files in FILES.items():
+        model = models[name]
+        for rel in files:
+            seq = read(root / rel)
+            marked, ghosts = split(seq, model.label_names)
+            gen = torch.Generator().manual_seed(seed)
+            rng = np.random.default_rng(seed)
+            clean = per_frame(model, marked, ghosts, gen, occlusions=(0, 0), ghosts=(0, 0))
+            noisy = per_frame(model, marked, ghosts, gen)
+            tr = tracklet(model, marked, ghosts, gen, rng)
+            rows = {"clean": clean, "noisy": noisy, "tr_frame": tr["frame"], "tracklet": tr["tracklet"]}
+            for key, val in rows.items():
+                pooled.setdefault(name, {}).setdefault(key, []).append(val)
+            s = {k: labeling_scores(*v, null=model.num_labels) for k, v in rows.items()}
+            print(
+                f"| {Path(rel).stem} | {name} | {len(marked)} | {fmt(s['clean'])} | {fmt(s['noisy'])} | "
+                f"{fmt(s['tr_frame'])} | {fmt(s['tracklet'])} |",
+                flush=True,
+            )
+            for k in range(6):
+                table2.setdefault(name, [[] for _ in range(7)])
+                table2[name][k].append(per_frame(model, marked, ghosts, gen, occlusions=(k, k), ghosts=(0, 0), exact=True))
+            table2[name][6].append(per_frame(model, marked, ghosts, gen, occlusions=(5, 5), ghosts=(3, 3), exact=True))
+    for name, rows in pooled.items():
+        s = {k: labeling_scores(*map(torch.cat, zip(*v)), null=models[name].num_labels) for k, v in rows.items()}
+        print(
+            f"| **all {name} files** | {name} | | {fmt(s['clean'])} | {fmt(s['noisy'])} | "
+            f"{fmt(s['tr_frame'])} | {fmt(s['tracklet'])} |"
+        )
+    print("\n## Per-frame accuracy / F1 (%) by exact number of occlusions (paper Table 2), pooled files")
+    print("| model | 0 | 1 | 2 | 3 | 4 | 5 | 5+G |\n|---|---|---|---|---|---|---|---|")
+    for name, cols in table2.items():
+        cells = [fmt(labeling_scores(*map(torch.cat, zip(*c)), null=models[name].num_labels)) for c in cols]
+        print(f"| {name} | " + " | ".join(cells) + " |")
+
+
+def speed_section(models: dict[str, Labeler]) -> None:
+    print(f"\n## Labeling speed (CPU, {torch.get_num_threads()} threads; forward + decoding)")
+    print("| model | parameters | batch | frames/s |\n|---|---|---|---|")
+    gen = torch.Generator().manual_seed(0)
+    for name, model in models.items():
+        n = sum(p.numel() for p in model.parameters())
+        for b in (1, 256):
+            pts = torch.randn(b, model.num_labels + 3, 3, generator=gen)
+            mask = torch.ones(b, model.num_labels + 3, dtype=torch.bool)
+            reps = 200 if b == 1 else 10
+            with torch.no_grad():
+                predict(model(pts, mask), mask)
+                t = time.perf_counter()
+                for _ in range(reps):
+                    predict(model(pts, mask), mask)
+                dt = time.perf_counter() - t
+            print(f"| {name} | {n:,} | {b} | {b * reps / dt:,.0f} |", flush=True)
+
+
+def solve_section(root: Path, png: Path | None) -> None:
+    print("\n## Body solve on the files' labels (stage 1 + stage 2, CPU)")
+    print("| file | layout | frames | solved | residual mean / median (mm) | frames/s |\n|---|---|---|---|---|---|")
+    for name, files in FILES.items():
+        layout = MarkerLayout.load(name)
+        for rel in files:
+            seq = read(root / rel)
+            lay = layout if all(x in seq.labels for x in layout.labels) else MarkerLayout.load("pig35")
+            t = time.perf_counter()
+            res = solve_sequence(seq, lay)
+            dt = time.perf_counter() - t
+            r = res.residual[torch.isfinite(res.residual)] * 1000
+            print(
+                f"| {Path(rel).stem} | {lay.name} | {seq.num_frames} | {100 * float(res.solved.float().mean()):.1f} % | "
+                f"{float(r.mean()):.1f} / {float(r.median()):.1f} | {seq.num_frames / dt:.0f} |",
+                flush=True,
+            )
+            if png is not None and rel.endswith("85_02.c3d"):
+                render_solved(png, seq, lay, res, frame=min(400, seq.num_frames - 1))
+
+
+def render_solved(path: Path, seq: MarkerSequence, layout: MarkerLayout, res, frame: int) -> None:
+    from unibody.body import BodyLayer
+    from unibody.mocap.render import render_markers
+
+    k = res.identity.shape[0]
+    layer = BodyLayer.from_pca(num_components=k, dtype=torch.float64)
+    out = layer(res.identity[None].double(), res.pose[frame : frame + 1].double(), transl=res.transl[frame : frame + 1].double())
+    obs = lab_to_unibody(seq.select(layout.labels).points[frame], up="z")
+    render_markers(path, out.vertices[0], layer.faces, obs, labels=None)
+    print(f"wrote {path} (frame {frame}: body, observed markers in red)")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--evaldata", type=Path, default=Path(__file__).resolve().parents[2] / "shared/evaldata")
+    p.add_argument("--sections", nargs="+", default=["label", "speed", "solve"])
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quick", action="store_true", help="first file per model, first 300 frames (a smoke test)")
+    p.add_argument("--png", type=Path, default=Path("benchmarks/mocap_solve.png"))
+    p.add_argument("--cmu41", default="cmu41", help="labeler weights (name or path)")
+    p.add_argument("--pig39", default="pig39", help="labeler weights (name or path)")
+    args = p.parse_args()
+    if not args.evaldata.is_dir():
+        raise SystemExit(f"--evaldata: {args.evaldata} is not a folder")
+    if args.quick:
+        for name in FILES:
+            FILES[name] = FILES[name][:2]
+        global MAX_FRAMES
+        MAX_FRAMES = 300
+    models = {"cmu41": load_labeler(args.cmu41), "pig39": load_labeler(args.pig39)}
+    for m in models.values():
+        m.eval()
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    if "label" in args.sections:
+        label_section(args.evaldata, models, args.seed)
+    if "speed" in args.sections:
+        speed_section(models)
+    if "solve" in args.sections:
+        solve_section(args.evaldata, args.png)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,105 @@
+"""Raw marker file -> labelled markers -> solved body: the steps behind ``unibody mocap``.
+
+    seq = read_markers("session.c3d")                       # any labels, or none ('*12')
+    model = load_labeler("cmu41")                           # shipped weights, or a path
+    labelled = label_sequence(seq, model)                   # MarkerSequence with the model's labels
+    result = solve_sequence(labelled, MarkerLayout.load("cmu41"))
+
+Labelled output: one column per model label (NaN where the label is absent in a frame),
+then the points left unlabelled as ``*0``, ``*1``, ... columns (one per input column that
+kept any). With ``tracklets`` each input column (a hardware tracklet) takes the majority
+label of its frames (paper 003 §4.5), else every frame is labelled on its own.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .c3d import MarkerSequence
+from .labeler import Labeler, label_frames
+from .layout import MarkerLayout
+from .solve import SolveConfig, SolveResult, lab_to_unibody, solve_markers
+from .tracklets import label_tracklets
+
+__all__ = ["available_labelers", "label_sequence", "load_labeler", "solve_sequence"]
+
+
+def _weights_dir():
+    return resources.files("unibody.mocap") / "data"
+
+
+def available_labelers() -> tuple[str, ...]:
+    """Layouts with shipped labeler weights."""
+    names = [p.name for p in _weights_dir().iterdir()]
+    return tuple(sorted(n[len("labeler_") : -len(".pt")] for n in names if n.startswith("labeler_")))
+
+
+def load_labeler(name_or_path: str | Path) -> Labeler:
+    """Shipped labeler weights by layout name (``"pig39"``, ``"cmu41"``) or a weights file."""
+    p = Path(name_or_path)
+    if p.suffix == ".pt" or p.exists():
+        return Labeler.load(p)
+    res = _weights_dir() / f"labeler_{name_or_path}.pt"
+    if not res.is_file():
+        raise ValueError(f"labeler: no shipped weights for {str(name_or_path)!r}; shipped: {available_labelers()}")
+    with resources.as_file(res) as f:
+        return Labeler.load(f)
+
+
+def label_sequence(
+    seq: MarkerSequence, model: Labeler, *, up: str = "z", tracklets: bool = True, batch: int = 256
+) -> MarkerSequence:
+    """Label every point of a marker sequence (labels already in the file are ignored).
+
+    Args:
+        seq: the input, in its lab frame (``up`` names its vertical axis).
+        model: a trained labeler.
+        up: "z" or "y", the vertical axis of ``seq``.
+        tracklets: whether each input column takes its majority label.
+        batch: frames per forward pass.
+    """
+    pts = torch.as_tensor(lab_to_unibody(seq.points, up=up), dtype=torch.float32)
+    frame = label_frames(model, pts, batch=batch)  # (T, N), L = null
+    null = model.num_labels
+    visible = seq.visible
+    if tracklets:
+        frame = label_tracklets(frame, torch.from_numpy(visible), null)
+    frame = frame.numpy()
+    t, n = frame.shape
+    out = np.full((t, null, 3), np.nan)
+    rows, cols = np.nonzero(visible & (frame < null))
+    out[rows, frame[rows, cols]] = seq.points[rows, cols]
+    left = visible & (frame == null)
+    keep = np.nonzero(left.any(axis=0))[0]
+    rest = np.where(left[:, keep, None], seq.points[:, keep], np.nan)
+    labels = (*model.label_names, *(f"*{i}" for i in range(len(keep))))
+    points = np.concatenate([out, rest], axis=1)
+    return MarkerSequence(points, labels, ("",) * len(labels), seq.rate)
+
+
+def solve_sequence(
+    seq: MarkerSequence,
+    layout: MarkerLayout,
+    *,
+    up: str = "z",
+    config: SolveConfig | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> SolveResult:
+    """Solve the body from the layout's labelled markers of ``seq`` (other columns are ignored).
+
+    Layout labels missing from ``seq`` are treated as never visible; at least a few must exist.
+    """
+    present = [x for x in layout.labels if x in seq.labels]
+    if len(present) < 6:
+        raise ValueError(
+            f"seq: only {len(present)} of the layout's {len(layout)} labels are in the file "
+            f"(have {', '.join(seq.labels[:12])}...); label it first (unibody mocap label)"
+        )
+    lay = layout.subset(present)
+    pts = torch.as_tensor(lab_to_unibody(seq.select(present).points, up=up), dtype=torch.float64)
+    return solve_markers(pts, lay, config=config, fps=seq.rate, progress=progress)

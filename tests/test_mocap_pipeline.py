@@ -1,0 +1,108 @@
+"""The shipped labelers and the `unibody mocap` commands, end to end on generated C3D files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from unibody.body import BodyLayer
+from unibody.cli import main
+from unibody.io.motion import load_motion
+from unibody.mocap.c3d import MarkerSequence, read_markers, write_c3d
+from unibody.mocap.labeler import predict
+from unibody.mocap.layout import MarkerLayout, place_markers
+from unibody.mocap.metrics import labeling_scores
+from unibody.mocap.pipeline import available_labelers, label_sequence, load_labeler
+from unibody.mocap.solve import unibody_to_lab
+from unibody.mocap.synthetic import SyntheticConfig, SyntheticMocap
+from unibody.rig import joint_index
+
+
+def test_shipped_labelers_exist_with_their_recipe():
+    assert {"cmu41", "pig39"} <= set(available_labelers())
+    for name in ("cmu41", "pig39"):
+        model = load_labeler(name)
+        assert model.label_names == MarkerLayout.load(name).labels
+        assert "scripts/train_labeler.py" in model.meta["command"] and "seed" in model.meta
+    with pytest.raises(ValueError, match="no shipped weights"):
+        load_labeler("nope")
+
+
+@pytest.mark.parametrize("name", ["cmu41", "pig39"])
+def test_shipped_labeler_on_held_out_synthetic(name):
+    """Bodies from a pool seed and frames from a stream never used in training."""
+    torch.manual_seed(0)
+    model = load_labeler(name).eval()
+    syn = SyntheticMocap(MarkerLayout.load(name), SyntheticConfig(identities=32, pool_seed=777))
+    batch = syn.sample(256, torch.Generator().manual_seed(4242))
+    with torch.no_grad():
+        pred, _ = predict(model(batch.points, batch.mask), batch.mask)
+    s = labeling_scores(pred[batch.mask], batch.labels[batch.mask], null=model.num_labels)
+    assert s["accuracy"] > 0.9, s
+
+
+def smooth_sequence(layout: MarkerLayout, frames: int = 40):
+    """A PCA body waving and stepping; markers (T, M, 3) in unibody's frame and the true joints."""
+    layer = BodyLayer.from_pca(num_components=16, dtype=torch.float64)
+    coeffs = 0.5 * torch.randn(1, 16, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    t = torch.linspace(0, 1, frames, dtype=torch.float64)
+    pose = torch.zeros(frames, 77, 3, dtype=torch.float64)
+    pose[:, joint_index("LeftArm") - 1, 2] = -1.2 + 0.8 * torch.sin(3 * t)
+    pose[:, joint_index("RightArm") - 1, 2] = 1.1
+    pose[:, joint_index("LeftLeg") - 1, 0] = -0.6 * torch.sin(2 * t)
+    pose[:, joint_index("RightShin") - 1, 0] = 0.8 * t
+    pose[:, 0, 1] = 2.0 * t  # turning
+    transl = torch.stack([t, 0.9 + 0 * t, 0.5 * t], dim=-1)
+    out = layer(coeffs, pose, transl=transl)
+    markers = place_markers(out.vertices, layer.faces, layout.vertices, layout.distance)
+    return markers, out.joints
+
+
+def test_cli_label_and_solve_generated_c3d(tmp_path):
+    layout = MarkerLayout.load("cmu41")
+    markers, joints = smooth_sequence(layout)
+    lab = unibody_to_lab(markers.numpy(), up="z")
+    labelled = MarkerSequence(lab, layout.labels, ("Sub",) * len(layout), 60.0)
+    src = tmp_path / "labelled.c3d"
+    write_c3d(src, labelled)
+
+    # solve from the file's labels, replay the motion, compare joints
+    motion_path = tmp_path / "motion.npz"
+    main(["mocap", "solve", str(src), "--out", str(motion_path), "--layout", "cmu41"])
+    motion = load_motion(motion_path)
+    assert motion.identity_backend == "pca" and motion.pose.shape == (40, 77, 3)
+    layer = BodyLayer.from_pca(num_components=len(motion.identity), dtype=torch.float64)
+    out = layer(
+        torch.from_numpy(motion.identity[None]).double(),
+        torch.from_numpy(motion.pose).double(),
+        transl=torch.from_numpy(motion.transl).double(),
+    )
+    body = [joint_index(n) for n in ("Hips", "Chest", "Head", "LeftForeArm", "LeftHand", "RightShin", "LeftFoot")]
+    err = (out.joints[:, body] - joints[:, body]).norm(dim=-1).mean()
+    assert err < 0.02, f"mean joint error {1000 * float(err):.1f} mm"
+
+    # hide the labels and shuffle the columns; label them back
+    perm = np.random.default_rng(0).permutation(len(layout))
+    raw = MarkerSequence(lab[:, perm], tuple(f"*{i}" for i in range(len(layout))), ("",) * len(layout), 60.0)
+    write_c3d(tmp_path / "raw.c3d", raw)
+    main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "out.npz"), "--model", "cmu41"])
+    back = read_markers(tmp_path / "out.npz")
+    assert back.labels[: len(layout)] == layout.labels
+    found = back.points[:, : len(layout)]
+    ok = np.isfinite(found).all(-1) & (np.abs(found - lab).max(-1) < 1e-4)
+    assert ok.mean() > 0.95, f"{ok.mean():.3f} of the markers labelled correctly"
+
+
+def test_label_sequence_per_frame_keeps_unlabelled_points():
+    model = load_labeler("pig39")
+    layout = MarkerLayout.load("pig39")
+    markers, _ = smooth_sequence(layout, frames=8)
+    lab = unibody_to_lab(markers.numpy(), up="z")
+    ghost = np.full((8, 1, 3), np.nan)
+    ghost[2:5, 0] = lab[2:5].mean(1) + np.array([0.0, 0.0, 3.0])  # a reflection high above the subject
+    seq = MarkerSequence(np.concatenate([lab, ghost], 1), (*layout.labels, "*0"), ("",) * 40, 100.0)
+    out = label_sequence(seq, model, tracklets=False)
+    n_in, n_out = int(seq.visible.sum()), int(out.visible.sum())
+    assert n_in == n_out  # no point is lost or duplicated
+    assert out.points.shape[1] >= len(layout)
