@@ -34,7 +34,7 @@ from unibody.mocap.corrupt import MocapBatch, break_trajectories, corrupt_frames
 from unibody.mocap.labeler import Labeler, label_frames, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.metrics import labeling_scores
-from unibody.mocap.pipeline import load_labeler, solve_sequence
+from unibody.mocap.pipeline import load_labeler, render_solution, solve_sequence
 from unibody.mocap.solve import lab_to_unibody
 from unibody.mocap.tracklets import label_tracklets
 
@@ -204,19 +204,9 @@ def solve_section(root: Path, png: Path | None) -> None:
                 flush=True,
             )
             if png is not None and rel.endswith("85_02.c3d"):
-                render_solved(png, seq, lay, res, frame=min(400, seq.num_frames - 1))
-
-
-def render_solved(path: Path, seq: MarkerSequence, layout: MarkerLayout, res, frame: int) -> None:
-    from unibody.body import BodyLayer
-    from unibody.mocap.render import render_markers
-
-    k = res.identity.shape[0]
-    layer = BodyLayer.from_pca(num_components=k, dtype=torch.float64)
-    out = layer(res.identity[None].double(), res.pose[frame : frame + 1].double(), transl=res.transl[frame : frame + 1].double())
-    obs = lab_to_unibody(seq.select(layout.labels).points[frame], up="z")
-    render_markers(path, out.vertices[0], layer.faces, obs, labels=None)
-    print(f"wrote {path} (frame {frame}: body, observed markers in red)")
+                frame = min(400, seq.num_frames - 1)
+                render_solution(png, seq, lay, res, frame)
+                print(f"wrote {png} (frame {frame}: body, observed markers in red)")
 
 
 def main() -> None:

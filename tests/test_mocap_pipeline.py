@@ -69,7 +69,8 @@ def test_cli_label_and_solve_generated_c3d(tmp_path):
 
     # solve from the file's labels, replay the motion, compare joints
     motion_path = tmp_path / "motion.npz"
-    main(["mocap", "solve", str(src), "--out", str(motion_path), "--layout", "cmu41"])
+    main(["mocap", "solve", str(src), "--out", str(motion_path), "--layout", "cmu41", "--png", str(tmp_path / "f.png")])
+    assert (tmp_path / "f.png").stat().st_size > 10_000
     motion = load_motion(motion_path)
     assert motion.identity_backend == "pca" and motion.pose.shape == (40, 77, 3)
     layer = BodyLayer.from_pca(num_components=len(motion.identity), dtype=torch.float64)

@@ -244,7 +244,7 @@ def run_mocap_solve(src: Path, out: Path, layout_name: str, up: str, png: Path |
     from .io.motion import save_motion
     from .mocap.c3d import read_markers
     from .mocap.layout import MarkerLayout
-    from .mocap.pipeline import solve_sequence
+    from .mocap.pipeline import render_solution, solve_sequence
 
     seq = read_markers(src)
     layout = MarkerLayout.load(layout_name)
@@ -258,16 +258,8 @@ def run_mocap_solve(src: Path, out: Path, layout_name: str, up: str, png: Path |
         f"marker residual mean {float(r.mean()):.1f} mm; wrote {out} (replay: unibody pose {out} --out meshes.npz)"
     )
     if png is not None:
-        from .body import BodyLayer
-        from .mocap.render import render_markers
-        from .mocap.solve import lab_to_unibody
-
         f = seq.num_frames // 2
-        k = result.identity.shape[0]
-        layer = BodyLayer.from_pca(num_components=k, dtype=torch.float64)
-        body = layer(result.identity[None].double(), result.pose[f : f + 1].double(), transl=result.transl[f : f + 1].double())
-        present = [x for x in layout.labels if x in seq.labels]
-        render_markers(png, body.vertices[0], layer.faces, lab_to_unibody(seq.select(present).points[f], up=up))
+        render_solution(png, seq, layout, result, f, up=up)
         print(f"wrote {png} (frame {f})")
 
 

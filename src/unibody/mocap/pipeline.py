@@ -26,7 +26,7 @@ from .layout import MarkerLayout
 from .solve import SolveConfig, SolveResult, lab_to_unibody, solve_markers
 from .tracklets import label_tracklets
 
-__all__ = ["available_labelers", "label_sequence", "load_labeler", "solve_sequence"]
+__all__ = ["available_labelers", "label_sequence", "load_labeler", "render_solution", "solve_sequence"]
 
 
 def _weights_dir():
@@ -103,3 +103,17 @@ def solve_sequence(
     lay = layout.subset(present)
     pts = torch.as_tensor(lab_to_unibody(seq.select(present).points, up=up), dtype=torch.float64)
     return solve_markers(pts, lay, config=config, fps=seq.rate, progress=progress)
+
+
+def render_solution(
+    path, seq: MarkerSequence, layout: MarkerLayout, result: SolveResult, frame: int, *, up: str = "z"
+) -> None:
+    """PNG of the solved body at ``frame`` with the file's markers of ``layout`` (red), front | back."""
+    from ..body import BodyLayer
+    from .render import render_markers
+
+    layer = BodyLayer.from_pca(num_components=result.identity.shape[0], dtype=torch.float64)
+    f = slice(frame, frame + 1)
+    body = layer(result.identity[None].double(), result.pose[f].double(), transl=result.transl[f].double())
+    present = [x for x in layout.labels if x in seq.labels]
+    render_markers(path, body.vertices[0], layer.faces, lab_to_unibody(seq.select(present).points[frame], up=up))
