@@ -1,6 +1,6 @@
 """Build the shipped PanoMan model (src/unibody/panoman/data/panoman_v1.pt) from synthetic data.
 
-    OMP_NUM_THREADS=2 python scripts/build_panoman.py --work build/panoman [--out src/unibody/panoman/data/panoman_v1.pt]
+    OMP_NUM_THREADS=1 python scripts/build_panoman.py --work build/panoman [--out PATH]
 
 Resumable: every stage writes its result under ``--work`` and is skipped when that file exists
 (delete it to redo a stage). Progress goes to stdout. Everything is a function of ``--seed``;
@@ -17,10 +17,11 @@ from pathlib import Path
 
 import torch
 
+from unibody.identity.pca import PCAIdentity
 from unibody.panoman import dataset
+from unibody.panoman.body_fit import sparse_joint_regressor
 from unibody.panoman.build import decompose, edge_graph, rla_matrix, train_beta_net, train_correction
 from unibody.panoman.mesh import EdgeTopology
-from unibody.identity.pca import PCAIdentity
 from unibody.panoman.model import SUBSETS, PanoMan, default_model_path
 from unibody.panoman.nets import MLP, CorrectionNet
 from unibody.panoman.splocs import SplocsConfig
@@ -59,16 +60,18 @@ def main(argv=None) -> None:
     rig = Rig.canonical()
     topo = EdgeTopology.from_faces(rig.faces.long(), rig.num_vertices)
     makers = {"body": dataset.body_samples, "face": dataset.face_samples, "hands": dataset.hand_samples}
-    n_samples = dict(zip(SUBSETS, args.samples))
-    n_comp = dict(zip(SUBSETS, args.components))
+    n_samples = dict(zip(SUBSETS, args.samples, strict=False))
+    n_comp = dict(zip(SUBSETS, args.components, strict=False))
 
     data = {}
     for subset in SUBSETS:
+
         def make(subset=subset):
             log(f"{subset}: {n_samples[subset]} samples")
             s = makers[subset](n_samples[subset], seed=args.seed)
             rl, ra = rla_matrix(s, topo)
             return {"rl": rl, "ra": ra, "pose": s.pose.float(), "shape": s.shape.float()}
+
         data[subset] = cached(args.work / f"rla_{subset}.pt", make)
 
     mean_rest = PCAIdentity.from_asset(num_components=1, dtype=torch.float64).mean
@@ -83,11 +86,15 @@ def main(argv=None) -> None:
                 def progress(stage, i, n):
                     if i == n or i % 10 == 0:
                         log(f"{q}/{subset} {stage} {i}/{n}")
+
                 dec, res = decompose(data[subset][q], graph, q, subset, cfg, progress=progress)
                 sizes = dec.support_sizes().float()
-                log(f"{q}/{subset}: {dec.num_components} components, support median {sizes.median():.0f} "
-                    f"max {sizes.max():.0f} edges of {topo.num_edges}")
+                log(
+                    f"{q}/{subset}: {dec.num_components} components, support median {sizes.median():.0f} "
+                    f"max {sizes.max():.0f} edges of {topo.num_edges}"
+                )
                 return dec
+
             decs.append(cached(args.work / f"dec_{q}_{subset}.pt", make))
 
     model = PanoMan(decs)
@@ -106,23 +113,46 @@ def main(argv=None) -> None:
         log(f"beta(theta): {pose.shape[0]} poses -> {int(keep.sum())} weights")
         net = train_beta_net(pose, tgt, keep, steps=args.net_steps, seed=args.seed, log=log)
         return net.state()
+
     beta_net = MLP.from_state(cached(args.work / "beta_net.pt", make_beta_net))
 
     correction = None
     if args.correction_rank > 0:
+
         def make_correction():
             b = beta["body"].double()
             rl_hat, ra_hat = model.rla(b, corrected=False)
             resid = torch.cat([data["body"]["rl"].double() - rl_hat, data["body"]["ra"].double() - ra_hat], dim=1)
-            log(f"correction: residual rms rl {resid[:, :topo.num_edges].pow(2).mean().sqrt():.2e} "
-                f"ra {resid[:, topo.num_edges:].pow(2).mean().sqrt():.2e}")
-            net = train_correction(model.body_beta(b).float(), resid.float(), rank=args.correction_rank,
-                                   steps=args.net_steps, seed=args.seed, log=log)
+            log(
+                f"correction: residual rms rl {resid[:, : topo.num_edges].pow(2).mean().sqrt():.2e} "
+                f"ra {resid[:, topo.num_edges :].pow(2).mean().sqrt():.2e}"
+            )
+            net = train_correction(
+                model.body_beta(b).float(),
+                resid.float(),
+                rank=args.correction_rank,
+                steps=args.net_steps,
+                seed=args.seed,
+                log=log,
+            )
             return net.state()
+
         correction = CorrectionNet.from_state(cached(args.work / "correction.pt", make_correction))
 
+    def make_regressor():
+        meshes = torch.cat(
+            [
+                dataset.body_samples(64, seed=args.seed, dtype=torch.float64).posed,
+                dataset.hand_samples(64, seed=args.seed, dtype=torch.float64).posed,
+            ]
+        )
+        return list(sparse_joint_regressor(meshes))
+
+    joint_regressor = tuple(cached(args.work / "joint_regressor.pt", make_regressor))
+
     recipe = {
-        "command": "OMP_NUM_THREADS=2 python scripts/build_panoman.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "command": "OMP_NUM_THREADS=2 python scripts/build_panoman.py "
+        + " ".join(sys.argv[1:] if argv is None else argv),
         "seed": args.seed,
         "samples": n_samples,
         "components": n_comp,
@@ -130,7 +160,9 @@ def main(argv=None) -> None:
         "net_steps": args.net_steps,
         "correction_rank": args.correction_rank,
     }
-    final = PanoMan(decs, beta_net=beta_net, correction=correction, metadata={"recipe": recipe})
+    final = PanoMan(
+        decs, beta_net=beta_net, correction=correction, joint_regressor=joint_regressor, metadata={"recipe": recipe}
+    )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     final.save(args.out)
     log(f"wrote {args.out} ({args.out.stat().st_size / 1e6:.1f} MB): {json.dumps(recipe)}")

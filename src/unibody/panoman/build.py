@@ -46,8 +46,9 @@ def edge_graph(topo: EdgeTopology, rest: torch.Tensor) -> tuple[sp.csr_matrix, n
     a = np.concatenate([fe[:, [0, 1]], fe[:, [1, 2]], fe[:, [2, 0]]])
     w = np.linalg.norm(mid[a[:, 0]] - mid[a[:, 1]], axis=1)
     n = len(e)
-    g = sp.coo_matrix((np.concatenate([w, w]), (np.concatenate([a[:, 0], a[:, 1]]), np.concatenate([a[:, 1], a[:, 0]]))),
-                      shape=(n, n)).tocsr()
+    g = sp.coo_matrix(
+        (np.concatenate([w, w]), (np.concatenate([a[:, 0], a[:, 1]]), np.concatenate([a[:, 1], a[:, 0]]))), shape=(n, n)
+    ).tocsr()
     return g, mid
 
 
@@ -84,8 +85,17 @@ def _train(net, x: torch.Tensor, y: torch.Tensor, *, steps: int, lr: float, seed
     return float(loss)
 
 
-def train_beta_net(pose: torch.Tensor, beta: torch.Tensor, keep: torch.Tensor, *, hidden=(400, 600), steps=3000,
-                   lr=1e-3, seed=0, log=None):
+def train_beta_net(
+    pose: torch.Tensor,
+    beta: torch.Tensor,
+    keep: torch.Tensor,
+    *,
+    hidden=(400, 600),
+    steps=3000,
+    lr=1e-3,
+    seed=0,
+    log=None,
+):
     """beta(theta) (paper Fig. 9) on poses (N, 77, 3) and their weights (N, K); predicts beta[:, keep]."""
     torch.manual_seed(seed)
     index = keep.nonzero().squeeze(1)
@@ -94,8 +104,9 @@ def train_beta_net(pose: torch.Tensor, beta: torch.Tensor, keep: torch.Tensor, *
     return net.eval()
 
 
-def train_correction(beta_body: torch.Tensor, residual: torch.Tensor, *, rank=16, hidden=(256,), steps=3000,
-                     lr=1e-3, seed=0, log=None):
+def train_correction(
+    beta_body: torch.Tensor, residual: torch.Tensor, *, rank=16, hidden=(256,), steps=3000, lr=1e-3, seed=0, log=None
+):
     """R(beta_B) on body weights (N, K_B) and residuals (N, 2E): PCA to ``rank``, then an MLP."""
     torch.manual_seed(seed)
     r = residual.double()

@@ -64,9 +64,7 @@ class Decomposition:
     def matrix(self, num_edges: int) -> sp.csc_matrix:
         """(E, K) scipy sparse, components as columns (float64)."""
         i = self.index.numpy()
-        return sp.csc_matrix(
-            (self.value.double().numpy(), (i[1], i[0])), shape=(num_edges, self.num_components)
-        )
+        return sp.csc_matrix((self.value.double().numpy(), (i[1], i[0])), shape=(num_edges, self.num_components))
 
     def support_sizes(self) -> torch.Tensor:
         """(K,) number of edges each component touches."""
@@ -81,6 +79,9 @@ class PanoMan(nn.Module):
         shape_components: number of PCA components used for the rest shape (paper: 10).
         beta_net: optional module, (B, 77, 3) axis-angle pose -> (B, K_L + K_A) weights.
         correction: optional module, (B, K_LB + K_AB) body weights -> ((B, E), (B, E)) RL/RA corrections.
+        joint_regressor: optional (vertex ids (77, k), weights (77, k)): joints 1..77 as narrow linear
+            functions of the vertices (:func:`~unibody.panoman.body_fit.sparse_joint_regressor`), the
+            joint-position constraints of the fit (§5.2).
         metadata: recipe and figures (informative).
     """
 
@@ -91,6 +92,7 @@ class PanoMan(nn.Module):
         shape_components: int = 10,
         beta_net: nn.Module | None = None,
         correction: nn.Module | None = None,
+        joint_regressor: tuple[torch.Tensor, torch.Tensor] | None = None,
         metadata: dict | None = None,
     ) -> None:
         super().__init__()
@@ -104,10 +106,12 @@ class PanoMan(nn.Module):
         order = {(q, s): i for i, (q, s) in enumerate((q, s) for q in ("rl", "ra") for s in SUBSETS)}
         self.decompositions = sorted(decompositions, key=lambda d: order[(d.quantity, d.subset)])
         self.beta_net, self.correction = beta_net, correction
+        self.joint_regressor = joint_regressor
         self.metadata = dict(metadata or {})
         e = self.topology.num_edges
-        self._mats = {q: sp.hstack([d.matrix(e) for d in self.decompositions if d.quantity == q]).tocsc()
-                      for q in ("rl", "ra")}
+        self._mats = {
+            q: sp.hstack([d.matrix(e) for d in self.decompositions if d.quantity == q]).tocsc() for q in ("rl", "ra")
+        }
         self._means = {q: sum(d.mean.double() for d in self.decompositions if d.quantity == q) for q in ("rl", "ra")}
 
     # ----------------------------------------------------------------- layout of beta
@@ -145,9 +149,13 @@ class PanoMan(nn.Module):
             with torch.no_grad():
                 dl, da = self.correction(self.body_beta(beta.float()))
             rl, ra = rl + dl.double(), ra + da.double()
-        return rl, ra
+        # weights far outside the training range (e.g. extrapolated by beta(theta)) could ask
+        # for non-positive edge lengths: keep every edge at least 5 % of its rest length
+        return rl.clamp_min(-0.95), ra
 
-    def forward(self, alpha: torch.Tensor, beta: torch.Tensor, *, reference: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self, alpha: torch.Tensor, beta: torch.Tensor, *, reference: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """B_P(alpha, beta): (B, V, 3) m posed meshes through g (eq. 5), float64.
 
         Args:
@@ -195,13 +203,24 @@ class PanoMan(nn.Module):
         s0 = area[topo.edge_faces.numpy()].sum(1)
         residual = None
         if self.correction is not None:
+
             def residual(beta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                 with torch.no_grad():
                     b = self.body_beta(torch.from_numpy(beta)[None].float())
                     dl, da = self.correction(b)
                 return dl[0].double().numpy(), da[0].double().numpy()
-        return ShellSubspace(l0, a0, s0, self._means["rl"].numpy(), self._means["ra"].numpy(),
-                             self._mats["rl"], self._mats["ra"], residual, beta_targets)
+
+        return ShellSubspace(
+            l0,
+            a0,
+            s0,
+            self._means["rl"].numpy(),
+            self._means["ra"].numpy(),
+            self._mats["rl"],
+            self._mats["ra"],
+            residual,
+            beta_targets,
+        )
 
     # ----------------------------------------------------------------- files
     def state(self) -> dict:
@@ -209,12 +228,19 @@ class PanoMan(nn.Module):
             "format": FORMAT,
             "shape_components": self.shape_space.num_params,
             "decompositions": [
-                {"quantity": d.quantity, "subset": d.subset, "mean": d.mean, "index": d.index,
-                 "value": d.value, "num_components": d.num_components}
+                {
+                    "quantity": d.quantity,
+                    "subset": d.subset,
+                    "mean": d.mean,
+                    "index": d.index.int(),
+                    "value": d.value.half(),
+                    "num_components": d.num_components,
+                }
                 for d in self.decompositions
             ],
             "beta_net": None if self.beta_net is None else self.beta_net.state(),
             "correction": None if self.correction is None else self.correction.state(),
+            "joint_regressor": None if self.joint_regressor is None else list(self.joint_regressor),
             "metadata": self.metadata,
         }
 
@@ -232,8 +258,17 @@ class PanoMan(nn.Module):
         s = torch.load(p, weights_only=True)
         if s.get("format") != FORMAT:
             raise ValueError(f"path: {p} is not a {FORMAT} file (format {s.get('format')!r})")
-        decs = [Decomposition(**d) for d in s["decompositions"]]
+        decs = [
+            Decomposition(**{**d, "index": d["index"].long(), "value": d["value"].float()}) for d in s["decompositions"]
+        ]
         beta_net = None if s["beta_net"] is None else MLP.from_state(s["beta_net"])
         correction = None if s["correction"] is None else CorrectionNet.from_state(s["correction"])
-        return cls(decs, shape_components=s["shape_components"], beta_net=beta_net, correction=correction,
-                   metadata=s["metadata"])
+        reg = s.get("joint_regressor")
+        return cls(
+            decs,
+            shape_components=s["shape_components"],
+            beta_net=beta_net,
+            correction=correction,
+            joint_regressor=None if reg is None else tuple(reg),
+            metadata=s["metadata"],
+        )

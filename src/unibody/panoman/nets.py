@@ -29,7 +29,7 @@ class _Standardised(nn.Module):
     def __init__(self, sizes: tuple[int, ...]) -> None:
         super().__init__()
         layers: list[nn.Module] = []
-        for a, b in zip(sizes[:-2], sizes[1:-1]):
+        for a, b in zip(sizes[:-2], sizes[1:-1], strict=False):
             layers += [nn.Linear(a, b), nn.ReLU()]
         layers.append(nn.Linear(sizes[-2], sizes[-1]))
         self.net = nn.Sequential(*layers)

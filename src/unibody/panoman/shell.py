@@ -46,7 +46,8 @@ class ShellConfig:
         parameters: gamma, weight of the parameter targets beta^.
         iterations: outer iterations (one V step and one beta step each).
         refactor_every: factorise J^T J again every this many iterations (1 = plain Gauss–Newton).
-        damping: Levenberg damping added to the diagonal, relative to its mean.
+        damping: Levenberg damping added to the diagonal, relative to its median (the mean is
+            dominated by the few tiny edges at the mouth and eye corners).
         tolerance: stop when the energy decreases by less than this fraction in one iteration.
     """
 
@@ -163,8 +164,9 @@ class _Problem:
         self.c3 = sp.kron(self.c_mat, sp.eye(3), format="csr") * self.c_scale
 
     def measures(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        from .rla import dihedral_angles, edge_lengths
         import torch
+
+        from .rla import dihedral_angles, edge_lengths
 
         t = torch.from_numpy(v)[None]
         return edge_lengths(t, self.topo)[0].numpy(), dihedral_angles(t, self.topo)[0].numpy()
@@ -284,7 +286,7 @@ def fit_shell(
         grad = jac.T @ r
         if solve is None or it % max(config.refactor_every, 1) == 0:
             h = (jac.T @ jac).tocsc()
-            h = h + sp.diags(np.full(3 * n, config.damping * h.diagonal().mean()), format="csc")
+            h = h + sp.diags(np.full(3 * n, config.damping * np.median(h.diagonal())), format="csc")
             solve = _cholesky(h)
         step = -solve(grad).reshape(-1, 3)
         e_old, t = float(r @ r), 1.0

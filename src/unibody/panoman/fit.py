@@ -1,0 +1,56 @@
+"""Fit PanoMan to sparse constraints (paper 004 §5): the discrete-shell fit from an initial mesh.
+
+    result = fit(model, alpha, handles, reference=lbs_vertices, pose=theta)
+
+The initial mesh is ``reference``: the LBS fit of ``BodyLayer`` to the same constraints
+(:func:`unibody.panoman.body_fit.fit_body`), which also gives the identity ``alpha`` (§5.3 uses
+an SMPL fit the same way). With joint rotations ``pose`` the weights beta(theta) of the Fig. 9
+network enter the energy as parameter targets (eq. 10, "motion data") with weight
+``config.parameters``.
+
+What we measured and did not keep: starting from ``g(X(alpha, beta(theta)))`` (the paper's
+initialisation) is worse here. ``g`` integrates frames over the whole surface, so the RLA error
+of a blended vector (a few percent per edge) becomes centimetres of drift at the extremities,
+and the shell fit then starts far from the handles (``benchmarks/panoman.py`` notes the figures).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .model import PanoMan
+from .shell import Handles, ShellConfig, ShellResult, fit_shell
+
+__all__ = ["fit"]
+
+
+def fit(
+    model: PanoMan,
+    alpha: torch.Tensor,
+    handles: Handles,
+    *,
+    reference: torch.Tensor,
+    pose: torch.Tensor | None = None,
+    config: ShellConfig | None = None,
+) -> ShellResult:
+    """Fit one mesh.
+
+    Args:
+        model: the PanoMan model.
+        alpha: (10,) shape coefficients of the identity.
+        handles: the constraints (vertex handles and regressed joints).
+        reference: (V, 3) m, the initial mesh, in the target's place.
+        pose: optional (77, 3) T-pose-relative axis-angle joint rotations (motion-data prior).
+        config: weights and schedule of the shell fit (None: the defaults).
+    """
+    config = ShellConfig() if config is None else config
+    alpha = alpha.reshape(-1).double()
+    init = reference.reshape(-1, 3).double().numpy()
+    targets = None
+    if pose is not None:
+        beta0 = model.beta_from_pose(pose.reshape(1, 77, 3).double())[0].numpy()
+        mask = np.zeros(model.num_beta)
+        mask[model.beta_net.out_index.numpy()] = 1.0
+        targets = (mask, beta0)
+    return fit_shell(model.topology, model.subspace(alpha, beta_targets=targets), init, handles, config=config)
