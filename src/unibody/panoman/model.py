@@ -26,6 +26,13 @@ import torch
 from torch import nn
 
 from .._checks import check_finite, check_shape
+from ..identity.pca import PCAIdentity
+from ..rig import Rig
+from .mesh import EdgeTopology
+from .nets import MLP, CorrectionNet
+from .reconstruct import reconstruct_rla
+from .rla import dihedral_angles, edge_lengths
+from .shell import ShellSubspace
 
 __all__ = ["Decomposition", "PanoMan", "SUBSETS", "default_model_path"]
 
@@ -96,9 +103,6 @@ class PanoMan(nn.Module):
         metadata: dict | None = None,
     ) -> None:
         super().__init__()
-        from ..identity.pca import PCAIdentity
-        from ..rig import Rig
-        from .mesh import EdgeTopology
 
         rig = Rig.canonical()
         self.topology = EdgeTopology.from_faces(rig.faces.long(), rig.num_vertices)
@@ -164,7 +168,6 @@ class PanoMan(nn.Module):
             reference: optional (B, V, 3) meshes to align the result to rigidly (g is defined
                 up to a rigid motion).
         """
-        from .reconstruct import reconstruct_rla
 
         rl, ra = self.rla(beta)
         return reconstruct_rla(rl, ra, self.rest(alpha), self.topology, reference=reference)
@@ -190,8 +193,6 @@ class PanoMan(nn.Module):
 
     def subspace(self, alpha: torch.Tensor, *, beta_targets=None):
         """The :class:`~unibody.panoman.shell.ShellSubspace` of one identity (alpha (10,)), for fitting."""
-        from .rla import dihedral_angles, edge_lengths
-        from .shell import ShellSubspace
 
         rest = self.rest(alpha.reshape(1, -1))
         topo = self.topology
@@ -250,7 +251,6 @@ class PanoMan(nn.Module):
     @classmethod
     def load(cls, path: str | Path | None = None) -> PanoMan:
         """The shipped model (None) or a file written by :meth:`save`."""
-        from .nets import MLP, CorrectionNet
 
         p = default_model_path() if path is None else Path(path)
         if not p.is_file():

@@ -31,6 +31,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+import torch
+from cholespy import CholeskySolverD, MatrixType
+
+from .rla import dihedral_angles, edge_lengths, shell_jacobian
 
 __all__ = ["Handles", "ShellConfig", "ShellResult", "ShellSubspace", "fit_shell"]
 
@@ -153,8 +157,6 @@ class _Problem:
     """Residuals and Jacobians of E at fixed targets; numpy float64, one mesh."""
 
     def __init__(self, topo, sub: ShellSubspace, handles: Handles, config: ShellConfig, num_vertices: int):
-        from .rla import shell_jacobian  # noqa: F401  (fails early if the module is missing)
-
         self.topo, self.sub, self.cfg, self.n = topo, sub, config, num_vertices
         ratio = sub.rest_lengths / sub.rest_areas
         self.w_bend = np.sqrt(config.bending) * ratio / np.median(ratio)
@@ -164,10 +166,6 @@ class _Problem:
         self.c3 = sp.kron(self.c_mat, sp.eye(3), format="csr") * self.c_scale
 
     def measures(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        import torch
-
-        from .rla import dihedral_angles, edge_lengths
-
         t = torch.from_numpy(v)[None]
         return edge_lengths(t, self.topo)[0].numpy(), dihedral_angles(t, self.topo)[0].numpy()
 
@@ -180,10 +178,6 @@ class _Problem:
         return np.concatenate([r_s, r_b, r_c])
 
     def jacobian(self, v: np.ndarray) -> sp.csr_matrix:
-        import torch
-
-        from .rla import shell_jacobian
-
         rows, cols, vals = (np.asarray(x) for x in shell_jacobian(torch.from_numpy(v), self.topo))
         e = len(self.sub.rest_lengths)
         scale = np.concatenate([1.0 / self.sub.rest_lengths, self.w_bend])
@@ -193,9 +187,6 @@ class _Problem:
 
 def _cholesky(h: sp.spmatrix):
     """A solver for the SPD matrix ``h``: sparse Cholesky (CHOLMOD through cholespy)."""
-    import torch
-    from cholespy import CholeskySolverD, MatrixType
-
     c = h.tocoo()
     n = h.shape[0]
     idx = [torch.from_numpy(np.ascontiguousarray(a, dtype=np.int32)) for a in (c.row, c.col)]
