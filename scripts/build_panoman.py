@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -48,11 +49,11 @@ def main(argv=None) -> None:
     p.add_argument("--work", type=Path, default=Path("build/panoman"))
     p.add_argument("--out", type=Path, default=default_model_path())
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--samples", type=int, nargs=3, default=(1500, 400, 600), metavar=("BODY", "FACE", "HANDS"))
-    p.add_argument("--components", type=int, nargs=3, default=(96, 24, 24), metavar=("BODY", "FACE", "HANDS"))
+    p.add_argument("--samples", type=int, nargs=3, default=(4000, 600, 1500), metavar=("BODY", "FACE", "HANDS"))
+    p.add_argument("--components", type=int, nargs=3, default=(128, 32, 32), metavar=("BODY", "FACE", "HANDS"))
     p.add_argument("--sparsity", type=float, default=None, help="SplocsConfig.sparsity (default: its own)")
     p.add_argument("--iterations", type=int, default=10)
-    p.add_argument("--net-steps", type=int, default=3000)
+    p.add_argument("--net-steps", type=int, default=6000)
     p.add_argument("--correction-rank", type=int, default=16, help="0 disables the correction MLP")
     args = p.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
@@ -151,7 +152,7 @@ def main(argv=None) -> None:
     joint_regressor = tuple(cached(args.work / "joint_regressor.pt", make_regressor))
 
     recipe = {
-        "command": "OMP_NUM_THREADS=2 python scripts/build_panoman.py "
+        "command": f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', '')} python scripts/build_panoman.py "
         + " ".join(sys.argv[1:] if argv is None else argv),
         "seed": args.seed,
         "samples": n_samples,

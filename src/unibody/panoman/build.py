@@ -107,15 +107,20 @@ def train_beta_net(
 def train_correction(
     beta_body: torch.Tensor, residual: torch.Tensor, *, rank=16, hidden=(256,), steps=3000, lr=1e-3, seed=0, log=None
 ):
-    """R(beta_B) on body weights (N, K_B) and residuals (N, 2E): PCA to ``rank``, then an MLP."""
+    """R(beta_B) on body weights (N, K_B) and residuals (N, 2E): PCA to ``rank``, then an MLP.
+
+    The principal directions come from the eigenvectors of the (N, N) Gram matrix of the centred
+    residuals (float64), which needs N^2 memory instead of a full SVD's workspace.
+    """
     torch.manual_seed(seed)
-    r = residual.double()
-    mean = r.mean(0)
-    _, _, vh = torch.linalg.svd(r - mean, full_matrices=False)
-    basis = vh[:rank]
+    mean = residual.double().mean(0)
+    r = residual.double() - mean  # a new tensor: the caller's residuals stay as they are
+    evals, evecs = torch.linalg.eigh(r @ r.T)
+    top = evecs[:, -rank:].flip(1) / evals[-rank:].flip(0).clamp_min(1e-30).sqrt()  # (N, rank)
+    directions = top.T @ r  # (rank, 2E), orthonormal rows
+    coeff = torch.cat([r @ directions.T, torch.ones(r.shape[0], 1, dtype=r.dtype)], dim=1)
     # The mean residual is folded in as an extra direction with coefficient 1.
-    basis = torch.cat([basis, mean[None]], dim=0)
-    coeff = torch.cat([(r - mean) @ vh[:rank].T, torch.ones(r.shape[0], 1, dtype=r.dtype)], dim=1)
+    basis = torch.cat([directions, mean[None]], dim=0)
     net = CorrectionNet((beta_body.shape[1], *hidden, rank + 1), basis.float())
     _train(net, beta_body.float(), coeff.float(), steps=steps, lr=lr, seed=seed, log=log)
     return net.eval()
