@@ -81,8 +81,8 @@ def _train(net, x: torch.Tensor, y: torch.Tensor, *, steps: int, lr: float, seed
         opt.step()
         sched.step()
         if log is not None and (step % 500 == 0 or step == steps - 1):
-            log(f"step {step + 1}/{steps} loss {float(loss):.4f}")
-    return float(loss)
+            log(f"step {step + 1}/{steps} loss {float(loss.detach()):.4f}")
+    return float(loss.detach())
 
 
 def train_beta_net(

@@ -11,7 +11,7 @@ network enter the energy as parameter targets (eq. 10, "motion data") with weigh
 What we measured and did not keep: starting from ``g(X(alpha, beta(theta)))`` (the paper's
 initialisation) is worse here. ``g`` integrates frames over the whole surface, so the RLA error
 of a blended vector (a few percent per edge) becomes centimetres of drift at the extremities,
-and the shell fit then starts far from the handles (``benchmarks/panoman.py`` notes the figures).
+and the shell fit then starts far from the handles (figures in benchmarks/README.md).
 """
 
 from __future__ import annotations
