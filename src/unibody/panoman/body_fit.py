@@ -5,7 +5,8 @@ points given by a linear regressor of the mesh (joint positions: the rig's RBF j
 applied to the posed mesh). The unknowns are the PCA shape coefficients, the 77 joint
 rotations (T-pose-relative axis-angle) and the Hips position of each item of a batch.
 
-Stages, batched and independent per item:
+Stages, batched (the objective is a sum over items, so each item's minimiser is its own; L-BFGS
+shares its line searches across the batch, so results move slightly with the batch's make-up):
 0. initialisation: shape from the bone lengths (pose-invariant), then analytic IK: each
    joint's rotation aligns its rest child offsets with the target ones (Kabsch / shortest arc);
 1. joints only: L-BFGS on the FK joint positions against the joint targets (no skinning,

@@ -38,6 +38,8 @@ import scipy.sparse.linalg as spla
 import torch
 
 from .._checks import check_finite, check_shape, check_tensor
+from ..geometry.procrustes import kabsch, polar
+from ._cholesky import cholesky
 from .mesh import EdgeTopology
 from .rla import dihedral_angles, edge_lengths, face_frames, rla_to_lengths_angles
 
@@ -219,7 +221,7 @@ class _FrameSolver:
         the face-graph Laplacian (x) I3 (factorised once per topology), which converges in a few
         steps. Inconsistent input (blended RLA vectors) has a frustrated connection that no flat
         preconditioner matches, so it goes to a direct sparse Cholesky factorisation of the
-        (3F - 3) system instead (:func:`_solve_spd`), as does CG that has not converged in 30 steps.
+        (3F - 3) system instead (sparse Cholesky), as does CG that has not converged in 30 steps.
         Measured on the canonical mesh, one CPU thread: ~0.09 s on the CG path, ~0.6 s direct.
         """
         n_faces = self.num_faces
@@ -234,7 +236,7 @@ class _FrameSolver:
 
             rows = _block_pcg(matrix, rhs, np.tile(np.eye(3), (n_faces - 1, 1)), precondition)
         if rows is None:
-            rows = _solve_spd(matrix, rhs)
+            rows = cholesky(matrix)(rhs)
         frames = np.empty((n_faces, 3, 3))
         frames[0] = np.eye(3)
         frames[1:] = _closest_rotations(rows.reshape(n_faces - 1, 3, 3).transpose(0, 2, 1) @ tree[1:])
@@ -340,53 +342,9 @@ def _frame_pattern(zeta: np.ndarray, tau: np.ndarray, n_faces: int) -> tuple[np.
     return free_mask, free_slot.ravel(), (keys % n).astype(np.int32), indptr.astype(np.int32), rhs_mask, rhs_slot
 
 
-def _closest_rotations(m: np.ndarray, max_iter: int = 30) -> np.ndarray:
-    """Closest rotation (polar factor, det +1) of each (N, 3, 3) matrix.
-
-    Scaled Newton iteration ``X <- (g X + (g X)^-T) / 2``, ``g = |det X|^(-1/3)``, with
-    ``X^-T = cof(X) / det X`` from column cross products; it converges quadratically and keeps
-    the sign of the determinant. Matrices with ``det <= 0`` (reflections, which Newton would keep)
-    go through the SVD with the last singular direction flipped.
-    """
-    out = np.empty_like(m)
-    det = np.linalg.det(m)
-    bad = det <= 1e-12 * np.abs(m).max(axis=(1, 2)) ** 3
-    if bad.any():
-        u, _, vt = np.linalg.svd(m[bad])
-        u[:, :, 2] *= np.sign(np.linalg.det(u @ vt))[:, None]
-        out[bad] = u @ vt
-    x = m[~bad]
-    for _ in range(max_iter):
-        c0, c1, c2 = x[:, :, 0], x[:, :, 1], x[:, :, 2]
-        cof = np.stack([np.cross(c1, c2), np.cross(c2, c0), np.cross(c0, c1)], axis=-1)
-        d = np.einsum("ij,ij->i", c0, cof[:, :, 0])
-        g = d ** (-1.0 / 3.0)
-        new = 0.5 * (g[:, None, None] * x + cof / (g * d)[:, None, None])
-        step = np.abs(new - x).max() if len(x) else 0.0
-        x = new
-        if step < 1e-15:
-            break
-    out[~bad] = x
-    return out
-
-
-def _solve_spd(matrix: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:
-    """Solve a symmetric positive definite system: CHOLMOD through cholespy, else SuperLU.
-
-    On the canonical frame system (3F = 108k unknowns, one CPU thread) cholespy's analysis and
-    factorisation take ~0.47 s and SuperLU's ~1.0 s.
-    """
-    try:
-        from cholespy import CholeskySolverD, MatrixType
-    except ImportError:
-        return _splu(matrix).solve(rhs)
-    matrix = sp.csr_matrix(matrix)
-    solver = CholeskySolverD(
-        matrix.shape[0], matrix.indptr.astype(np.int32), matrix.indices.astype(np.int32), matrix.data, MatrixType.CSR
-    )
-    out = np.zeros_like(rhs)
-    solver.solve(np.ascontiguousarray(rhs), out)
-    return out
+def _closest_rotations(m: np.ndarray) -> np.ndarray:
+    """Closest rotation (det +1) of each (N, 3, 3) matrix: :func:`unibody.geometry.procrustes.polar`."""
+    return polar(torch.from_numpy(m)).numpy()
 
 
 def _block_pcg(
@@ -428,13 +386,11 @@ def _local_face_edges(face_lengths: np.ndarray) -> np.ndarray:
     return np.stack([np.stack([l01, zero], -1), np.stack([x - l01, y], -1), np.stack([-x, -y], -1)], 1)
 
 
-def _kabsch(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def _align(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """``x`` (V, 3) moved by the rotation and translation that best fit it to ``y``."""
     cx, cy = x.mean(0), y.mean(0)
-    u, _, vt = np.linalg.svd((x - cx).T @ (y - cy))
-    d = np.sign(np.linalg.det(u @ vt))
-    rot = u @ np.diag([1.0, 1.0, d]) @ vt  # x_aligned = (x - cx) @ rot + cy
-    return (x - cx) @ rot + cy
+    rot = kabsch(torch.from_numpy(x - cx), torch.from_numpy(y - cy)).numpy()
+    return (x - cx) @ rot.T + cy
 
 
 def _reconstruct_identity_gauge(
@@ -500,7 +456,7 @@ def reconstruct(
     ref = None if reference is None else _check_reference(reference, lengths.shape[0], topo)
     out = _reconstruct_identity_gauge(lengths, angles, topo, anchor_vertex)
     if ref is not None:
-        out = np.stack([_kabsch(o, r) for o, r in zip(out, ref, strict=True)])
+        out = np.stack([_align(o, r) for o, r in zip(out, ref, strict=True)])
     return torch.from_numpy(out).to(device=lengths.device, dtype=lengths.dtype)
 
 

@@ -30,10 +30,11 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 import torch
-from cholespy import CholeskySolverD, MatrixType
 
+from ._cholesky import cholesky
 from .rla import dihedral_angles, edge_lengths, shell_jacobian
 
 __all__ = ["Handles", "ShellConfig", "ShellResult", "ShellSubspace", "fit_shell"]
@@ -164,10 +165,31 @@ class _Problem:
         self.c_mat, self.c_targets = handles.matrix(num_vertices)
         self.c_scale = np.sqrt(config.handles) / self.h
         self.c3 = sp.kron(self.c_mat, sp.eye(3), format="csr") * self.c_scale
+        # The beta step's normal matrices depend only on the subspace and the weights: factorise
+        # them once per fit (one (K, K) Cholesky per half), not once per iteration.
+        self.beta_systems = []
+        for basis, w, sl in (
+            (sub.basis_l, None, slice(0, sub.num_l)),
+            (sub.basis_a, self.w_bend, slice(sub.num_l, sub.num_l + sub.basis_a.shape[1])),
+        ):
+            m = sp.csc_matrix(basis) if w is None else sp.diags(w) @ basis
+            lhs = (m.T @ m).toarray() + config.ridge * np.eye(m.shape[1])
+            prior = None
+            if sub.beta_targets is not None:
+                mask, values = sub.beta_targets
+                prior = (mask[sl].astype(np.float64) * config.parameters, values[sl])
+                lhs[np.diag_indices_from(lhs)] += prior[0]
+            self.beta_systems.append((m, w, prior, scipy.linalg.cho_factor(lhs)))
+        self._measured: tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None
 
     def measures(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Edge lengths and bending angles of ``v``; the last mesh's are kept (each step asks twice)."""
+        if self._measured is not None and np.array_equal(self._measured[0], v):
+            return self._measured[1]
         t = torch.from_numpy(v)[None]
-        return edge_lengths(t, self.topo)[0].numpy(), dihedral_angles(t, self.topo)[0].numpy()
+        out = edge_lengths(t, self.topo)[0].numpy(), dihedral_angles(t, self.topo)[0].numpy()
+        self._measured = (v.copy(), out)
+        return out
 
     def residuals(self, v: np.ndarray, rl_t: np.ndarray, ra_t: np.ndarray) -> np.ndarray:
         lengths, angles = self.measures(v)
@@ -185,47 +207,32 @@ class _Problem:
         return sp.vstack([j, self.c3]).tocsr()
 
 
-def _cholesky(h: sp.spmatrix):
-    """A solver for the SPD matrix ``h``: sparse Cholesky (CHOLMOD through cholespy)."""
-    c = h.tocoo()
-    n = h.shape[0]
-    idx = [torch.from_numpy(np.ascontiguousarray(a, dtype=np.int32)) for a in (c.row, c.col)]
-    solver = CholeskySolverD(n, idx[0], idx[1], torch.from_numpy(np.ascontiguousarray(c.data)), MatrixType.COO)
-
-    def solve(b: np.ndarray) -> np.ndarray:
-        x = torch.zeros(n, 1, dtype=torch.float64)
-        solver.solve(torch.from_numpy(np.ascontiguousarray(b, dtype=np.float64)).reshape(n, 1), x)
-        return x[:, 0].numpy()
-
-    return solve
-
-
 def _beta_step(prob: _Problem, v: np.ndarray, beta: np.ndarray) -> np.ndarray:
     """Exact minimiser of E over beta at fixed V (the correction MLP held at the current beta)."""
-    s, cfg = prob.sub, prob.cfg
+    s = prob.sub
     lengths, angles = prob.measures(v)
-    rl = lengths / s.rest_lengths - 1.0
-    ra = _wrap(angles - s.rest_angles)
     dl = da = 0.0
     if s.residual is not None:
         dl, da = s.residual(beta)
+    targets = (lengths / s.rest_lengths - 1.0 - s.mean_l - dl, _wrap(angles - s.rest_angles) - s.mean_a - da)
     out = []
-    for basis, y, w, sl in (
-        (s.basis_l, rl - s.mean_l - dl, None, slice(0, s.num_l)),
-        (s.basis_a, ra - s.mean_a - da, prob.w_bend, slice(s.num_l, len(beta))),
-    ):
-        m = basis if w is None else sp.diags(w) @ basis
-        yy = y if w is None else w * y
-        k = basis.shape[1]
-        lhs = (m.T @ m).toarray() + cfg.ridge * np.eye(k)
-        rhs = m.T @ yy
-        if s.beta_targets is not None:
-            mask, values = s.beta_targets
-            mk = mask[sl].astype(np.float64) * cfg.parameters
-            lhs[np.diag_indices(k)] += mk
-            rhs = rhs + mk * values[sl]
-        out.append(np.linalg.solve(lhs, rhs))
+    for (m, w, prior, factor), y in zip(prob.beta_systems, targets, strict=True):
+        rhs = m.T @ (y if w is None else w * y)
+        if prior is not None:
+            rhs = rhs + prior[0] * prior[1]
+        out.append(scipy.linalg.cho_solve(factor, rhs))
     return np.concatenate(out)
+
+
+def _line_search(prob: _Problem, v, step, r, rl_t, ra_t):
+    """Backtracking on the V step at fixed targets: the accepted move (V, 3), or None if none descends."""
+    e_old, t = float(r @ r), 1.0
+    for _ in range(8):
+        r_try = prob.residuals(v + t * step, rl_t, ra_t)
+        if float(r_try @ r_try) < e_old:
+            return t * step
+        t *= 0.5
+    return None
 
 
 def _energy(r: np.ndarray, beta: np.ndarray, prob: _Problem) -> float:
@@ -274,21 +281,14 @@ def fit_shell(
     solve = None
     for it in range(config.iterations):
         jac = prob.jacobian(v)
-        grad = jac.T @ r
         if solve is None or it % max(config.refactor_every, 1) == 0:
             h = (jac.T @ jac).tocsc()
             h = h + sp.diags(np.full(3 * n, config.damping * np.median(h.diagonal())), format="csc")
-            solve = _cholesky(h)
-        step = -solve(grad).reshape(-1, 3)
-        e_old, t = float(r @ r), 1.0
-        for _ in range(8):  # backtracking on the V step at fixed targets
-            r_try = prob.residuals(v + t * step, rl_t, ra_t)
-            if float(r_try @ r_try) < e_old:
-                break
-            t *= 0.5
-        else:
-            break
-        v = v + t * step
+            solve = cholesky(h)
+        move = _line_search(prob, v, -solve(jac.T @ r).reshape(-1, 3), r, rl_t, ra_t)
+        if move is None:
+            break  # no descent along the (possibly stale) Gauss-Newton step: stop here
+        v = v + move
         beta = _beta_step(prob, v, beta)
         rl_t, ra_t = subspace.targets(beta)
         r = prob.residuals(v, rl_t, ra_t)
