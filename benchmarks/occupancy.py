@@ -4,7 +4,8 @@ Sections:
 - ``iou``: held-out bodies (identity pool 1 and pose stream 1; training used pool 0 and its own
   poses): mean IoU of the occupancy at 1/2 against winding numbers of the posed mesh, for points
   uniform in each body's bounding box and near its surface (N(0, 1 cm) about area-weighted
-  surface samples), as in paper Table 2.
+  surface samples), as in paper Table 2. Then the same for real poses: frames of three CMU
+  mocap files in ``../shared/evaldata`` solved by ``unibody.mocap`` (never used in training).
 - ``speed``: one body: encoding time, and the time to query 10,000 points (uniform in the
   bounding box, and near the surface) after encoding; median of repeats, CPU.
 - ``self``: seeded extreme poses (sample_poses with amplitude >= 0.8) of held-out identities,
@@ -21,7 +22,9 @@ Sections:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -37,12 +40,46 @@ from unibody.poses import sample_poses
 CURVE_STEPS = (0, 5, 10, 20, 30, 50, 75, 100, 150, 200)
 
 
-def section_iou(occ: BodyOccupancy, bodies: int, points: int) -> None:
+REAL = (("cmu_85_02", 4), ("cmu_135_02", 10), ("cmu_85_12", 40))  # evaldata C3D files, frame step
+
+
+def real_poses(count: int, evaldata: Path) -> torch.Tensor:
+    """(count, 77, 3) poses solved from real CMU mocap (jumps, flips, breakdance, kata, floor work) with
+    unibody's own labeler-free solve of the labelled markers; frames with a median marker residual
+    above 1.5 cm are dropped, then ``count`` are taken evenly."""
+    from unibody.mocap.c3d import read_markers
+    from unibody.mocap.layout import MarkerLayout
+    from unibody.mocap.pipeline import solve_sequence
+
+    poses = []
+    for name, step in REAL:
+        seq = read_markers(evaldata / "c3d" / f"{name}.c3d")
+        seq = dataclasses.replace(seq, points=seq.points[::step], rate=seq.rate / step)
+        res = solve_sequence(seq, MarkerLayout.load("cmu41"))
+        good = np.nanmedian(np.asarray(res.residual), axis=1) < 0.015
+        poses.append(torch.as_tensor(np.asarray(res.pose)[good], dtype=torch.float32))
+    pose = torch.cat(poses)
+    return pose[torch.linspace(0, len(pose) - 1, count).round().long()]
+
+
+def section_iou(occ: BodyOccupancy, bodies: int, points: int, evaldata: Path | None) -> None:
+    _iou_set(occ, bodies, points, None, "held-out identities (pool 1), seeded held-out poses")
+    if evaldata is not None and (evaldata / "c3d").is_dir():
+        pose = real_poses(bodies, evaldata)
+        _iou_set(occ, bodies, points, pose, "held-out identities, real poses solved from evaldata CMU mocap")
+
+
+def _iou_set(occ: BodyOccupancy, bodies: int, points: int, real: torch.Tensor | None, title: str) -> None:
     res = {"uniform": [], "surface": []}
     heights = []
     for start in range(0, bodies, 10):
         n = min(10, bodies - start)
-        out, faces = occ_data.pose_bodies(n, seed=1, index=1000 + start)
+        if real is None:
+            out, faces = occ_data.pose_bodies(n, seed=1, index=1000 + start)
+        else:
+            layer = occ_data._layer()
+            with torch.no_grad():
+                out, faces = layer(occ_data._pool(1, 1000)[start : start + n], real[start : start + n]), layer.faces
         gen = occ_data.generator("benchmark-iou", start)
         uniform, near = occ_data.evaluation_points(out.vertices, faces, points, gen)
         with torch.no_grad():
@@ -53,7 +90,7 @@ def section_iou(occ: BodyOccupancy, bodies: int, points: int) -> None:
         rest = out.rest_vertices
         heights.append(rest[..., 1].amax(1) - rest[..., 1].amin(1))
     h = torch.cat(heights)
-    print(f"held-out IoU on {bodies} bodies ({points} points each, per set), %:")
+    print(f"IoU, {title}: {bodies} bodies, {points} points each per set, %:")
     for name in res:
         v = torch.cat(res[name]) * 100
         child = v[h < 1.3]
@@ -261,11 +298,13 @@ def main() -> None:
     p.add_argument("--prior-weight", type=float, default=100.0)
     p.add_argument("--png", default="docs/occupancy_self_intersection.png")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--evaldata", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "evaldata",
+                   help="the evaldata folder (real poses for the IoU section); skipped when absent")  # fmt: skip
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     occ = BodyOccupancy.pretrained(args.weights)
     if "iou" in args.sections:
-        section_iou(occ, args.bodies, args.points)
+        section_iou(occ, args.bodies, args.points, args.evaldata)
     if "speed" in args.sections:
         for threads in sorted({1, args.threads, 2}):
             torch.set_num_threads(threads)

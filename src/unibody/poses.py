@@ -18,12 +18,14 @@ random orientation instead (flips, handstands, lying down).
 
 from __future__ import annotations
 
+import hashlib
+
 import torch
 
 from .geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from .rig import JOINT_NAMES
 
-__all__ = ["JOINT_RANGES", "sample_poses"]
+__all__ = ["JOINT_RANGES", "keyed_generator", "sample_poses"]
 
 # name: ((lo_x, lo_y, lo_z), (hi_x, hi_y, hi_z), (relaxed_x, relaxed_y, relaxed_z)), left side, radians.
 # Arms: about Z lowers (-) / raises (+) the arm, about Y swings it forward (-) / back (+), about X
@@ -45,6 +47,13 @@ JOINT_RANGES: dict[str, tuple[tuple[float, float, float], ...]] = {
     "LeftToeBase": ((-0.5, -0.05, -0.05), (0.3, 0.05, 0.05), (0.0, 0.0, 0.0)),
 }
 _FINGER_CURL = (-1.2, 0.15, -0.3)  # about Z (palm down: - curls the finger), lo, hi, relaxed
+
+
+def keyed_generator(*key: object) -> torch.Generator:
+    """A CPU generator seeded by a hash of ``key`` (independent streams for distinct keys, and the
+    same stream for the same key in any process: resumable, order-free synthetic data)."""
+    digest = hashlib.blake2b(repr(key).encode(), digest_size=8).digest()
+    return torch.Generator().manual_seed(int.from_bytes(digest, "little"))
 
 
 def _mirror(v: torch.Tensor) -> torch.Tensor:

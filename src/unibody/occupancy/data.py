@@ -10,14 +10,13 @@ self-intersect. Every draw is a function of ``(seed, index)`` so that training c
 from __future__ import annotations
 
 import functools
-import hashlib
 
 import numpy as np
 import torch
 
 from ..body import BodyLayer, BodyOutput
 from ..panoman.dataset import identity_pool
-from ..poses import sample_poses
+from ..poses import keyed_generator, sample_poses
 from .model import part_boxes
 from .parts import BodyParts
 
@@ -27,9 +26,8 @@ NUM_SHAPE = 10
 
 
 def generator(*key: object) -> torch.Generator:
-    """A CPU generator seeded by a hash of ``key`` (independent streams for distinct keys)."""
-    digest = hashlib.blake2b(repr(("occupancy", *key)).encode(), digest_size=8).digest()
-    return torch.Generator().manual_seed(int.from_bytes(digest, "little"))
+    """The random stream of ``key`` within the occupancy data (:func:`unibody.poses.keyed_generator`)."""
+    return keyed_generator("occupancy", *key)
 
 
 @functools.cache

@@ -94,7 +94,13 @@ class BodyOccupancy(nn.Module):
         return torch.relu(self.query(points, body) - 0.5).sum(-1)
 
     def self_intersection_loss(
-        self, body: Body, *, samples: int = 256, vertices: torch.Tensor | None = None, generator=None
+        self,
+        body: Body,
+        *,
+        samples: int = 256,
+        vertices: torch.Tensor | None = None,
+        threshold: float = 0.5,
+        generator: torch.Generator | None = None,
     ) -> torch.Tensor:
         """(B,) volume-aware self-intersection penalty (paper 002 eq. 9).
 
@@ -102,8 +108,11 @@ class BodyOccupancy(nn.Module):
         (detached; pass ``vertices`` (B, V, 3) when ``body`` is an encoding), kept where the
         boxes of two parts that may not overlap meet (``parts.allowed``: parent, child and the
         named neighbours excluded). At a candidate where two such parts i and j are both
-        occupied (> 1/2), the penalty is occ_i + occ_j - 1, summed over pairs and points.
+        occupied (> ``threshold``), the penalty is occ_i + occ_j - 2 ``threshold``, summed over
+        pairs and points. A threshold below 1/2 asks for a margin between the parts.
         """
+        if not 0.0 < threshold < 1.0:
+            raise ValueError(f"threshold: expected a value in (0, 1), got {threshold}")
         enc = self.encode(body)
         if isinstance(body, BodyOutput):
             vertices = body.vertices
@@ -125,9 +134,9 @@ class BodyOccupancy(nn.Module):
             valid = torch.arange(order.shape[1], device=pts.device) < count[:, None]
         pts = torch.gather(pts, 1, order[..., None].expand(-1, -1, 3))
         occ = torch.sigmoid(self.net.part_logits(pts, enc)) * valid[..., None]
-        hit = (occ > 0.5).to(occ.dtype)
+        hit = (occ > threshold).to(occ.dtype)
         partners = hit @ allowed  # occupied parts at each point that this part may not overlap
-        return (hit * partners * (occ - 0.5)).sum((1, 2))
+        return (hit * partners * (occ - threshold)).sum((1, 2))
 
     def extract_mesh(self, body: Body, *, resolution: int = 128, chunk: int = 200_000):
         """Marching-cubes surfaces (scikit-image) of the occupancy at 1/2, one per batch item.

@@ -15,6 +15,11 @@ for determinism:
   always 1 and dropped.
 - The part code, the one-hot part id and the log box size enter the decoder's first layer,
   which is linear, so their contribution is one bias per part, computed at encoding time.
+- Besides the query's box coordinates the decoder sees local geometry: the offset to the
+  nearest of the part's encoder samples, that sample's normal (from its posed triangle) and the
+  signed distance to its tangent plane. The global part code alone is a bottleneck at the
+  millimetre scale near the surface; this local feature, the idea of IF-Nets and ConvONet, costs
+  one small nearest-neighbour search per evaluated (point, part) pair.
 """
 
 from __future__ import annotations
@@ -41,6 +46,8 @@ class PartEncoding:
         center: (B, K, 3) m, box centre in the part frame.
         half: (B, K, 3) m, padded box half-size in the part frame.
         bias: (B, K, W) the decoder's first-layer bias of each part (code, part id, box size).
+        samples: (B, K, S, 3) m, the part's encoder samples in its frame.
+        normals: (B, K, S, 3) their unit normals in the part frame.
     """
 
     rotation: torch.Tensor
@@ -48,6 +55,8 @@ class PartEncoding:
     center: torch.Tensor
     half: torch.Tensor
     bias: torch.Tensor
+    samples: torch.Tensor
+    normals: torch.Tensor
 
     def to_boxes(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Box coordinates (B, T, K, 3) of world ``points`` (B, T, 3) and the inside mask (B, T, K)."""
@@ -90,6 +99,31 @@ def _surface_samples(parts: BodyParts, faces: torch.Tensor, vertices: torch.Tens
         s = r[:, 0].sqrt()
         bary.append(torch.stack([1 - s, s * (1 - r[:, 1]), s * r[:, 1]], -1))
     return torch.stack(ids), torch.stack(bary)
+
+
+def local_features(u: torch.Tensor, b: torch.Tensor, k: torch.Tensor, enc: PartEncoding) -> torch.Tensor:
+    """(N, 7) local geometry of box coordinates ``u`` (N, 3) of parts ``k`` of bodies ``b``: the
+    offset to the part's nearest encoder sample in box units, the signed distance to that sample's
+    tangent plane in units of the mean box half-size, and the sample's normal (part frame)."""
+    half, center = enc.half[b, k], enc.center[b, k]
+    x = u * half + center  # the part frame, metres
+    num_parts = enc.half.shape[1]
+    key = b * num_parts + k
+    order = torch.argsort(key, stable=True)
+    counts = torch.bincount(key, minlength=enc.half.shape[0] * num_parts).tolist()
+    nearest = torch.empty_like(key)
+    start = 0
+    with torch.no_grad():
+        for group, n in enumerate(counts):
+            if n:
+                rows = order[start : start + n]
+                d = torch.cdist(x[rows], enc.samples[group // num_parts, group % num_parts])
+                nearest[rows] = d.argmin(1)
+                start += n
+    p, n = enc.samples[b, k, nearest], enc.normals[b, k, nearest]
+    off = x - p
+    signed = (off * n).sum(-1, keepdim=True) / half.mean(-1, keepdim=True)
+    return torch.cat([off / half, signed, n], -1)
 
 
 class _ResBlock(nn.Module):
@@ -141,7 +175,7 @@ class OccupancyNet(nn.Module):
         faces: torch.Tensor,
         template: torch.Tensor,
         *,
-        samples: int = 64,
+        samples: int = 128,
         encoder_width: int = 64,
         width: int = 128,
         code: int = 128,
@@ -164,7 +198,7 @@ class OccupancyNet(nn.Module):
         self.register_buffer("part_joints", parts.joints.clone(), persistent=False)
         self.encoder = PointEncoder(4, encoder_width, code)
         self.bias = nn.Linear(code + k + 3, width)
-        self.inp = nn.Linear(3 + 6 * octaves, width, bias=False)
+        self.inp = nn.Linear(3 + 6 * octaves + 7, width, bias=False)
         self.hidden = nn.ModuleList(nn.Linear(width, width) for _ in range(depth - 1))
         self.out = nn.Linear(width, 1)
         self.act = nn.SiLU()
@@ -179,17 +213,20 @@ class OccupancyNet(nn.Module):
         p = torch.einsum("bksic,ksi->bksc", tri, self.sample_bary.to(vertices.dtype))
         local = torch.einsum("bksc,bkcd->bksd", p - origin[:, :, None], rotation)
         u = (local - center[:, :, None]) / half[:, :, None]
+        n = torch.linalg.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
+        n = torch.einsum("bksc,bkcd->bksd", n, rotation)
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         b, k, s, _ = u.shape
         x = torch.cat([u, self.sample_tight.to(u.dtype).expand(b, k, s)[..., None]], -1)
         z = self.encoder(x.reshape(b * k, s, 4)).view(b, k, -1)
         onehot = torch.eye(k, dtype=z.dtype, device=z.device).expand(b, k, k)
         bias = self.bias(torch.cat([z, onehot, half.log()], -1))
-        return PartEncoding(rotation, origin, center, half, bias)
+        return PartEncoding(rotation, origin, center, half, bias, local, n)
 
-    def decode(self, u: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-        """Logits (N,) of box coordinates ``u`` (N, 3) with first-layer biases (N, W)."""
+    def decode(self, u: torch.Tensor, local: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        """Logits (N,) of box coordinates ``u`` (N, 3) with local features (N, 7) and first-layer biases (N, W)."""
         a = u[..., None] * self.freq
-        h = self.act(self.inp(torch.cat([u, a.sin().flatten(-2), a.cos().flatten(-2)], -1)) + bias)
+        h = self.act(self.inp(torch.cat([u, a.sin().flatten(-2), a.cos().flatten(-2), local], -1)) + bias)
         for layer in self.hidden:
             h = h + self.act(layer(h))
         return self.out(h).squeeze(-1)
@@ -198,7 +235,8 @@ class OccupancyNet(nn.Module):
         """(B, T, K) logits of every part at world ``points`` (B, T, 3); OUTSIDE where out of its box."""
         u, inside = enc.to_boxes(points)
         b, t, k = inside.nonzero(as_tuple=True)
-        logit = self.decode(u[b, t, k], enc.bias[b, k])
+        u = u[b, t, k]
+        logit = self.decode(u, local_features(u, b, k, enc), enc.bias[b, k])
         full = u.new_full(inside.shape, OUTSIDE)
         return full.index_put((b, t, k), logit)
 

@@ -39,7 +39,6 @@ sets with :func:`iter_batches`.
 from __future__ import annotations
 
 import functools
-import hashlib
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -50,7 +49,7 @@ import torch
 from ..body import BodyLayer, PreparedIdentity
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..identity.expressions import FACIAL_ACTIONS, expression_basis, expression_reference
-from ..poses import JOINT_RANGES, sample_poses
+from ..poses import JOINT_RANGES, keyed_generator, sample_poses
 from ..rig import JOINT_NAMES, Rig, joint_index
 
 __all__ = [
@@ -116,12 +115,6 @@ class PanoSamples:
 # --------------------------------------------------------------------------- random streams
 
 
-def _generator(*key: object) -> torch.Generator:
-    """A CPU generator seeded by a hash of ``key`` (independent streams for distinct keys)."""
-    digest = hashlib.blake2b(repr(key).encode(), digest_size=8).digest()
-    return torch.Generator().manual_seed(int.from_bytes(digest, "little"))
-
-
 def _check_int(value: object, name: str, low: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < low:
         raise ValueError(f"{name}: expected an int >= {low}, got {value!r}")
@@ -137,7 +130,7 @@ def identity_pool(size: int, *, seed: int, dtype: torch.dtype = torch.float32) -
     _check_int(size, "size", 0)
     _check_int(seed, "seed", 0)
     lo = 0.5 * math.erfc(_TRUNCATE / math.sqrt(2.0))  # Phi(-2)
-    u = torch.stack([torch.rand(NUM_SHAPE, generator=_generator("identity", seed, k), dtype=torch.float64)
+    u = torch.stack([torch.rand(NUM_SHAPE, generator=keyed_generator("identity", seed, k), dtype=torch.float64)
                      for k in range(size)]) if size else torch.zeros(0, NUM_SHAPE, dtype=torch.float64)  # fmt: skip
     return torch.special.ndtri(lo + (1.0 - 2.0 * lo) * u).to(dtype)
 
@@ -343,13 +336,13 @@ def _plan(subset: str, n: int, seed: int, twist_fraction: float, max_active: int
     parts = []
     for chunk in range(-(-n // _CHUNK)):
         if subset == "body":
-            gen = _generator("panoman", subset, seed, twist_fraction, chunk)
+            gen = keyed_generator("panoman", subset, seed, twist_fraction, chunk)
             parts.append(_body_poses(_CHUNK, gen, twist_fraction))
         elif subset == "face":
-            gen = _generator("panoman", subset, seed, max_active, chunk)
+            gen = keyed_generator("panoman", subset, seed, max_active, chunk)
             parts.append(sample_expressions(_CHUNK, gen, max_active=max_active))
         else:
-            parts.append(sample_hand_poses(_CHUNK, _generator("panoman", subset, seed, chunk)))
+            parts.append(sample_hand_poses(_CHUNK, keyed_generator("panoman", subset, seed, chunk)))
     return torch.cat(parts)[:n]
 
 
