@@ -5,13 +5,16 @@ Sections:
   poses): mean IoU of the occupancy at 1/2 against winding numbers of the posed mesh, for points
   uniform in each body's bounding box and near its surface (N(0, 1 cm) about area-weighted
   surface samples), as in paper Table 2. Then the same for real poses: frames of three CMU
-  mocap files in ``../shared/evaldata`` solved by ``unibody.mocap`` (never used in training).
+  mocap files in ``../shared/evaldata`` solved by ``unibody.mocap`` (never used in training),
+  and for Anny identities (uniform phenotypes), a body model the network never saw.
 - ``speed``: one body: encoding time, and the time to query 10,000 points (uniform in the
   bounding box, and near the surface) after encoding; median of repeats, CPU.
 - ``self``: seeded extreme poses (sample_poses with amplitude >= 0.8) of held-out identities,
   kept when their meshes intersect between parts that may not touch (exact triangle test,
   ``occupancy.metrics``); mean intersecting pairs over ``resolve_self_intersections`` (200
   steps), the change of the joint rotations, and the convergence curve as a PNG.
+- ``figure``: a PNG of a held-out body, its marching-cubes occupancy surface, and the most
+  intersecting of four seeded poses before and after ``resolve_self_intersections``.
 - ``scene``: a body standing 6 cm into a floor with a box through its thigh, as point clouds:
   scene points inside the body mesh (winding numbers) before and after optimising translation
   and pose with the collision term.
@@ -63,23 +66,37 @@ def real_poses(count: int, evaldata: Path) -> torch.Tensor:
 
 
 def section_iou(occ: BodyOccupancy, bodies: int, points: int, evaldata: Path | None) -> None:
-    _iou_set(occ, bodies, points, None, "held-out identities (pool 1), seeded held-out poses")
+    def held_out(start: int, n: int):
+        return occ_data.pose_bodies(n, seed=1, index=1000 + start)
+
+    _iou_set(occ, bodies, points, held_out, "PCA identities of held-out pool 1, seeded held-out poses")
     if evaldata is not None and (evaldata / "c3d").is_dir():
         pose = real_poses(bodies, evaldata)
-        _iou_set(occ, bodies, points, pose, "held-out identities, real poses solved from evaldata CMU mocap")
+        layer = occ_data._layer()
+
+        def real(start: int, n: int):
+            with torch.no_grad():
+                return layer(occ_data._pool(1, 1000)[start : start + n], pose[start : start + n]), layer.faces
+
+        _iou_set(occ, bodies, points, real, "held-out PCA identities, real poses solved from evaldata CMU mocap")
+    from unibody import BodyLayer
+
+    anny = BodyLayer.from_anny(procedural=True)
+
+    def anny_bodies(start: int, n: int):
+        gen = occ_data.generator("benchmark-anny", start)
+        with torch.no_grad():
+            return anny(torch.rand(n, 6, generator=gen), sample_poses(n, gen)), anny.faces
+
+    _iou_set(occ, bodies, points, anny_bodies, "Anny identities (uniform phenotypes; never trained on), seeded poses")
 
 
-def _iou_set(occ: BodyOccupancy, bodies: int, points: int, real: torch.Tensor | None, title: str) -> None:
+def _iou_set(occ: BodyOccupancy, bodies: int, points: int, make, title: str) -> None:
     res = {"uniform": [], "surface": []}
     heights = []
     for start in range(0, bodies, 10):
         n = min(10, bodies - start)
-        if real is None:
-            out, faces = occ_data.pose_bodies(n, seed=1, index=1000 + start)
-        else:
-            layer = occ_data._layer()
-            with torch.no_grad():
-                out, faces = layer(occ_data._pool(1, 1000)[start : start + n], real[start : start + n]), layer.faces
+        out, faces = make(start, n)
         gen = occ_data.generator("benchmark-iou", start)
         uniform, near = occ_data.evaluation_points(out.vertices, faces, points, gen)
         with torch.no_grad():
@@ -284,10 +301,55 @@ def section_scene(occ: BodyOccupancy, steps: int) -> None:
           f"{step} steps, {time.time() - t0:.1f} s")  # fmt: skip
 
 
+def _panel(meshes, label: str, size: int = 420) -> np.ndarray:
+    from unibody.render import render_image
+
+    img = Image.fromarray(render_image(meshes, width=size, height=size, view="front", ground_y=None))
+    ImageDraw.Draw(img).text((10, 8), label, fill=(20, 20, 20))
+    return np.asarray(img)
+
+
+def _split(vertices: torch.Tensor, faces: torch.Tensor, red: torch.Tensor):
+    from unibody.render import MeshSpec
+
+    v = vertices.detach().cpu().numpy()
+    return [MeshSpec(v, faces[~red].numpy(), (0.80, 0.66, 0.58)), MeshSpec(v, faces[red].numpy(), (0.85, 0.1, 0.1))]
+
+
+def section_figure(occ: BodyOccupancy, path: str, steps: int) -> None:
+    """Held-out body, its marching-cubes occupancy surface, a self-intersecting pose before/after."""
+    from unibody.geometry.intersect import intersecting_pairs
+    from unibody.render import MeshSpec
+
+    out, faces = occ_data.pose_bodies(1, seed=1, index=3000)
+    verts, tris = occ.extract_mesh(out, resolution=128)[0]
+    layer, f = occ_data._layer(), occ_data._layer().faces.long()
+    params, pose, _ = self_intersecting_poses(4, occ.parts)
+    with torch.no_grad():
+        counts = part_intersections(layer(params, pose).vertices, f, occ.parts)
+    i = int(counts.argmax())
+    res = resolve_self_intersections(occ, layer, params[i : i + 1], pose[i : i + 1], steps=steps)
+    panels = [
+        _panel([MeshSpec(out.vertices[0].numpy(), faces.numpy(), (0.80, 0.66, 0.58))], "held-out body (mesh)"),
+        _panel([MeshSpec(verts.numpy(), tris.numpy(), (0.55, 0.68, 0.85))], "occupancy, marching cubes 128^3"),
+    ]
+    for label, p in (("self-intersecting (red)", pose[i : i + 1]), (f"resolved, {steps} steps", res.pose)):
+        with torch.no_grad():
+            v = layer(params[i : i + 1], p).vertices[0]
+        pairs = intersecting_pairs(v, f)
+        lab = occ.parts.face_part
+        pairs = pairs[occ.parts.allowed[lab[pairs[:, 0]], lab[pairs[:, 1]]]]
+        red = torch.zeros(len(f), dtype=torch.bool)
+        red[pairs.flatten()] = True
+        panels.append(_panel(_split(v, f, red), f"{label}: {len(pairs)} pairs"))
+    Image.fromarray(np.concatenate(panels, 1)).save(path)
+    print(f"wrote {path}")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--sections", nargs="+", default=["iou", "speed", "self", "scene"],
-                   choices=["iou", "speed", "self", "scene"])  # fmt: skip
+    p.add_argument("--sections", nargs="+", default=["iou", "speed", "self", "scene", "figure"],
+                   choices=["iou", "speed", "self", "scene", "figure"])  # fmt: skip
     p.add_argument("--weights", default=None, help="an occupancy file (default: the shipped one)")
     p.add_argument("--bodies", type=int, default=50)
     p.add_argument("--points", type=int, default=100_000)
@@ -297,6 +359,7 @@ def main() -> None:
     p.add_argument("--lr", type=float, default=0.01)
     p.add_argument("--prior-weight", type=float, default=100.0)
     p.add_argument("--png", default="docs/occupancy_self_intersection.png")
+    p.add_argument("--figure", default="docs/occupancy.png")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--evaldata", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "evaldata",
                    help="the evaldata folder (real poses for the IoU section); skipped when absent")  # fmt: skip
@@ -314,6 +377,8 @@ def main() -> None:
         section_self(occ, args.poses, args.steps, args.png, args.batch, lr=args.lr, prior_weight=args.prior_weight)
     if "scene" in args.sections:
         section_scene(occ, args.steps)
+    if "figure" in args.sections:
+        section_figure(occ, args.figure, args.steps)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Train the shipped occupancy network (src/unibody/occupancy/data/occupancy_v1.pt).
+"""Train the shipped occupancy network (src/unibody/occupancy/weights/occupancy_v1.pt).
 
     OMP_NUM_THREADS=1 python scripts/train_occupancy.py [--checkpoint build/occupancy/train.pt] [--out PATH]
 

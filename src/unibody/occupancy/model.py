@@ -246,7 +246,7 @@ class OccupancyNet(nn.Module):
 
 
 def default_weights_path():
-    """The shipped weights, ``unibody/occupancy/data/occupancy_v1.pt``."""
+    """The shipped weights, ``unibody/occupancy/weights/occupancy_v1.pt``."""
     from pathlib import Path
 
-    return Path(__file__).parent / "data" / "occupancy_v1.pt"
+    return Path(__file__).parent / "weights" / "occupancy_v1.pt"

@@ -1,9 +1,11 @@
 """Resolve self-intersections by optimising the pose against the occupancy (paper 002 §5.2).
 
 The pose moves by gradient steps (Adam) on the self-intersection term plus a quadratic pull
-toward the input pose; the Hips (global orientation) and the translation stay fixed. A batch
-item stops moving once its term reaches zero. Unlike the reference, a batch is optimised at
-once (its items do not interact: the loss is a sum of per-item terms).
+toward the input pose; the Hips (global orientation) and the translation stay fixed. The term is
+a Monte-Carlo estimate (fresh candidate points every step), so one zero proves little: an item
+stops moving only once its term has been zero at ``patience`` consecutive steps. Unlike the
+reference, a batch is optimised at once (its items do not interact: the loss is a sum of
+per-item terms).
 """
 
 from __future__ import annotations
@@ -28,7 +30,8 @@ class Resolved:
     Attributes:
         pose: (B, 77, 3) the resolved T-pose-relative axis-angle pose (the input is untouched).
         loss: (steps + 1, B) the self-intersection term before every step and after the last.
-        steps: (B,) the step at which each item reached zero (``steps`` if it never did).
+        steps: (B,) the step at which each item stopped, its term zero at ``patience`` consecutive
+            steps (``steps`` if it never did).
     """
 
     pose: torch.Tensor
@@ -48,6 +51,7 @@ def resolve_self_intersections(
     prior_weight: float = 100.0,
     samples: int = 256,
     threshold: float = 0.3,
+    patience: int | None = 10,
     seed: int = 0,
     callback: Callable[[int, BodyOutput], None] | None = None,
 ) -> Resolved:
@@ -59,17 +63,21 @@ def resolve_self_intersections(
     meshes come apart instead of stopping where they still graze.
 
     ``callback(step, output)`` sees the posed batch before every step and after the last (e.g. to
-    count intersecting triangles).
+    count intersecting triangles). ``patience=None`` never stops an item early (the paper's fixed
+    step budget).
     """
     check_shape(pose, "B 77 3", name="pose")
     check_finite(pose, "pose")
     if not isinstance(steps, int) or steps < 0:
         raise ValueError(f"steps: expected an int >= 0, got {steps!r}")
+    if patience is not None and (not isinstance(patience, int) or patience < 1):
+        raise ValueError(f"patience: expected an int >= 1 or None, got {patience!r}")
     start = pose.detach()
     delta = torch.zeros_like(start[:, 1:], requires_grad=True)
     opt = torch.optim.Adam([delta], lr=lr)
     b = start.shape[0]
     done = torch.zeros(b, dtype=torch.bool, device=start.device)
+    zeros = torch.zeros(b, dtype=torch.long, device=start.device)  # consecutive zero terms
     finished = torch.full((b,), steps, dtype=torch.long)
     history = []
     for step in range(steps + 1):
@@ -80,7 +88,8 @@ def resolve_self_intersections(
         gen = generator("resolve", seed, step)
         loss = occupancy.self_intersection_loss(out, samples=samples, threshold=threshold, generator=gen)
         history.append(loss.detach().cpu())
-        newly = (loss.detach() <= 0) & ~done
+        zeros = torch.where(loss.detach() <= 0, zeros + 1, torch.zeros_like(zeros))
+        newly = (zeros >= (patience or steps + 2)) & ~done
         finished[newly.cpu()] = step
         done |= newly
         if step == steps or bool(done.all()):
