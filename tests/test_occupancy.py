@@ -134,7 +134,7 @@ def test_shipped_weights_are_full_inside_and_empty_far_outside(shipped, bodies):
 
 def test_shipped_weights_iou_on_held_out_bodies(shipped):
     res = evaluate(shipped.net, bodies=4, points=5000, seed=2)
-    assert res["uniform"] > 93.0 and res["surface"] > 80.0, res
+    assert res["uniform"] > 95.0 and res["surface"] > 89.0, res  # shipped: 96.7 and 92.2
 
 
 def test_iou():

@@ -117,8 +117,9 @@ def local_features(u: torch.Tensor, b: torch.Tensor, k: torch.Tensor, enc: PartE
         for group, n in enumerate(counts):
             if n:
                 rows = order[start : start + n]
-                d = torch.cdist(x[rows], enc.samples[group // num_parts, group % num_parts])
-                nearest[rows] = d.argmin(1)
+                s = enc.samples[group // num_parts, group % num_parts]
+                # |x - s|^2 up to the per-row constant |x|^2: one matmul, no square roots
+                nearest[rows] = torch.addmm(s.pow(2).sum(-1), x[rows], s.T, alpha=-2.0).argmin(1)
                 start += n
     p, n = enc.samples[b, k, nearest], enc.normals[b, k, nearest]
     off = x - p

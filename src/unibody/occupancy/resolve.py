@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from .._checks import check_finite, check_shape
-from ..body import BodyLayer, BodyOutput
+from ..body import BodyLayer
 from .data import generator
 from .field import BodyOccupancy
 
@@ -53,18 +53,19 @@ def resolve_self_intersections(
     threshold: float = 0.3,
     patience: int | None = 10,
     seed: int = 0,
-    callback: Callable[[int, BodyOutput], None] | None = None,
+    callback: Callable[[int, torch.Tensor], None] | None = None,
 ) -> Resolved:
     """Move ``pose`` (B, 77, 3) of ``layer(params, pose, transl=transl)`` out of self-intersection.
 
     Minimises ``self_intersection_loss + prior_weight * |pose - pose_in|^2`` per item over the
     joints below the Hips. The loss uses ``threshold`` 0.3 rather than 1/2: parts are pushed a
     little past the network's estimate of contact, which is off by about a millimetre, so the
-    meshes come apart instead of stopping where they still graze.
-
-    ``callback(step, output)`` sees the posed batch before every step and after the last (e.g. to
-    count intersecting triangles). ``patience=None`` never stops an item early (the paper's fixed
+    meshes come apart instead of stopping where they still graze. Items that have stopped are
+    no longer posed or queried. ``patience=None`` never stops an item early (the paper's fixed
     step budget).
+
+    ``callback(step, pose)`` sees the current (B, 77, 3) pose before every step and after the
+    last (e.g. to count intersecting triangles).
     """
     check_shape(pose, "B 77 3", name="pose")
     check_finite(pose, "pose")
@@ -82,25 +83,27 @@ def resolve_self_intersections(
     history = []
     for step in range(steps + 1):
         current = torch.cat([start[:, :1], start[:, 1:] + delta], 1)
-        out = layer(params, current, transl=transl)
         if callback is not None:
-            callback(step, out)
+            callback(step, current.detach())
+        active = (~done).nonzero().squeeze(1)
+        out = layer(params[active], current[active], transl=None if transl is None else transl[active])
         gen = generator("resolve", seed, step)
-        loss = occupancy.self_intersection_loss(out, samples=samples, threshold=threshold, generator=gen)
-        history.append(loss.detach().cpu())
-        zeros = torch.where(loss.detach() <= 0, zeros + 1, torch.zeros_like(zeros))
+        term = occupancy.self_intersection_loss(out, samples=samples, threshold=threshold, generator=gen)
+        loss = term.new_zeros(b).index_copy(0, active, term.detach())  # stopped items: their last value, 0
+        history.append(loss.cpu())
+        zeros = torch.where(loss <= 0, zeros + 1, torch.zeros_like(zeros))
         newly = (zeros >= (patience or steps + 2)) & ~done
         finished[newly.cpu()] = step
         done |= newly
         if step == steps or bool(done.all()):
             break
-        prior = delta.pow(2).sum((1, 2))
         opt.zero_grad(set_to_none=True)
-        (loss + prior_weight * prior).masked_fill(done, 0.0).sum().backward()
+        keep = ~newly[active]  # items stopping now take no further step
+        (term[keep].sum() + prior_weight * delta[active[keep]].pow(2).sum()).backward()
         frozen = delta.detach()[done].clone()
         opt.step()
         with torch.no_grad():
-            delta[done] = frozen
+            delta[done] = frozen  # Adam's momentum would move stopped items on
     loss = torch.stack(history)
     if loss.shape[0] < steps + 1:  # every item finished early: the rest of the curve is flat
         loss = torch.cat([loss, loss[-1:].expand(steps + 1 - loss.shape[0], -1)])
