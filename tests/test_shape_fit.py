@@ -27,18 +27,21 @@ def _reposed(layer: BodyLayer, params: torch.Tensor) -> torch.Tensor:
         return layer.repose_to_bind(layer.prepare_identity(params))
 
 
-def test_recovers_anny_phenotypes_from_the_default_start(anny32):
+def test_recovers_anny_phenotypes_from_the_default_start():
     # Not every phenotype vector is reachable from the average identity: the multilinear
     # phenotype model has local minima (e.g. muscle 0.6 at age 0.7 ends at muscle 0.48).
-    truth = torch.tensor([[0.8, 0.35, 0.3, 0.7, 0.3, 0.6], [0.15, 0.9, 0.5, 0.55, 0.8, 0.3]])
-    targets = _reposed(anny32, truth)
-    start = _reposed(anny32, anny32.identity.default_params(2))
-    fit = fit_identity(anny32, targets, lbfgs_steps=100)
+    # float64: in float32 the line search stops at rounding level, and where that is depends
+    # on the CPU kernels and library versions (one machine: 1e-5 m, another: 1.7 mm).
+    anny64 = BodyLayer.from_anny().double()
+    truth = torch.tensor([[0.8, 0.35, 0.3, 0.7, 0.3, 0.6], [0.15, 0.9, 0.5, 0.55, 0.8, 0.3]], dtype=torch.float64)
+    targets = _reposed(anny64, truth)
+    start = _reposed(anny64, anny64.identity.default_params(2))
+    fit = fit_identity(anny64, targets, lbfgs_steps=100)
     assert isinstance(fit, IdentityFit) and fit.params.shape == (2, 6) and fit.vertices.shape == targets.shape
-    assert fit.params.dtype == torch.float32 and not fit.params.requires_grad
+    assert fit.params.dtype == torch.float64 and not fit.params.requires_grad
     assert float((start - targets).norm(dim=-1).amax()) > 0.05  # the start is far away
-    assert float(fit.per_vertex_error.amax()) < 1e-3  # m
-    assert float((fit.params - truth).abs().amax()) < 2e-3
+    assert float(fit.per_vertex_error.amax()) < 1e-9  # m
+    assert float((fit.params - truth).abs().amax()) < 1e-9
     assert torch.allclose(fit.per_vertex_error, (fit.vertices - targets).norm(dim=-1))
     assert fit.adam_steps == 0 and 0 < fit.lbfgs_steps < 100  # stopped: converged
 

@@ -19,6 +19,7 @@ from .._checks import check_finite, check_shape
 from ..body import BodyLayer
 from .data import generator
 from .field import BodyOccupancy
+from .model import PartEncoding
 
 __all__ = ["Resolved", "resolve_self_intersections"]
 
@@ -52,6 +53,7 @@ def resolve_self_intersections(
     samples: int = 256,
     threshold: float = 0.3,
     patience: int | None = 10,
+    rigid_parts: bool = True,
     seed: int = 0,
     callback: Callable[[int, torch.Tensor], None] | None = None,
 ) -> Resolved:
@@ -60,7 +62,11 @@ def resolve_self_intersections(
     Minimises ``self_intersection_loss + prior_weight * |pose - pose_in|^2`` per item over the
     joints below the Hips. The loss uses ``threshold`` 0.3 rather than 1/2: parts are pushed a
     little past the network's estimate of contact, which is off by about a millimetre, so the
-    meshes come apart instead of stopping where they still graze. Items that have stopped are
+    meshes come apart instead of stopping where they still graze. With ``rigid_parts`` the pose
+    acts on the term through the part frames alone (part codes and boxes held fixed at each
+    step): joints that only reshape a part (eyes, fingers, toes) are left alone, where Adam's
+    per-joint normalisation would otherwise move them as far as the joints in contact, and the
+    backward pass skips the encoder. Items that have stopped are
     no longer posed or queried. ``patience=None`` never stops an item early (the paper's fixed
     step budget).
 
@@ -88,7 +94,12 @@ def resolve_self_intersections(
         active = (~done).nonzero().squeeze(1)
         out = layer(params[active], current[active], transl=None if transl is None else transl[active])
         gen = generator("resolve", seed, step)
-        term = occupancy.self_intersection_loss(out, samples=samples, threshold=threshold, generator=gen)
+        enc = occupancy.encode(out)
+        if rigid_parts:  # the pose acts through the part frames alone
+            enc = PartEncoding(enc.rotation, enc.origin, *(getattr(enc, f).detach() for f in PartEncoding.__slots__[2:]))
+        term = occupancy.self_intersection_loss(
+            enc, vertices=out.vertices, samples=samples, threshold=threshold, generator=gen
+        )
         loss = term.new_zeros(b).index_copy(0, active, term.detach())  # stopped items: their last value, 0
         history.append(loss.cpu())
         zeros = torch.where(loss <= 0, zeros + 1, torch.zeros_like(zeros))
