@@ -13,6 +13,8 @@ Sections:
   kept when their meshes intersect between parts that may not touch (exact triangle test,
   ``occupancy.metrics``); mean intersecting pairs over ``resolve_self_intersections`` (200
   steps), the change of the joint rotations, and the convergence curve as a PNG.
+- ``variants``: on the first 20 of those poses, the stopping rule and the rigid parts of
+  ``resolve_self_intersections`` against the alternatives.
 - ``figure``: a PNG of a held-out body, its marching-cubes occupancy surface, and the most
   intersecting of four seeded poses before and after ``resolve_self_intersections``.
 - ``scene``: a body standing 6 cm into a floor with a box through its thigh, as point clouds:
@@ -227,6 +229,35 @@ def section_self(occ: BodyOccupancy, count: int, steps: int, png: str | None, ba
         print(f"  wrote {png}")
 
 
+VARIANTS = (
+    ("stop an item at its first zero term", dict(patience=1, rigid_parts=False)),
+    ("never stop early (the paper's fixed budget)", dict(patience=None, rigid_parts=False)),
+    ("10 consecutive zeros, gradients through the part codes", dict(patience=10, rigid_parts=False)),
+    ("10 consecutive zeros, rigid parts (the defaults)", dict(patience=10, rigid_parts=True)),
+)
+
+
+def section_variants(occ: BodyOccupancy, count: int, steps: int) -> None:
+    """The stopping rule and rigid parts of resolve_self_intersections against the alternatives."""
+    params, pose, _ = self_intersecting_poses(count, occ.parts)
+    layer = occ_data._layer()
+    faces, parts = layer.faces.long(), occ.parts
+    with torch.no_grad():
+        before = part_intersections(layer(params, pose).vertices, faces, parts).double()
+    print(f"resolve variants on the first {count} self-intersecting poses, {steps} steps at most:")
+    for name, kw in VARIANTS:
+        t = time.time()
+        res = resolve_self_intersections(occ, layer, params, pose, steps=steps, **kw)
+        elapsed = time.time() - t
+        with torch.no_grad():
+            after = part_intersections(layer(params, res.pose).vertices, faces, parts).double()
+        rel = axis_angle_to_matrix(pose[:, 1:]).transpose(-1, -2) @ axis_angle_to_matrix(res.pose[:, 1:])
+        change = torch.rad2deg(rotation_angle(rel))
+        resolved = (after == 0).double().mean()
+        print(f"  {name:56s} pairs {before.mean():.1f} -> {after.mean():.1f}, resolved {resolved:.0%}, "
+              f"mean joint change {change.mean():.2f} deg, {elapsed / count:.2f} s per pose")  # fmt: skip
+
+
 def scene_points(floor_y: float, box_lo, box_hi, spacing: float = 0.01, seed: int = 0) -> torch.Tensor:
     """A floor square (2 x 2 m at height ``floor_y``) and a box's surface, sampled every ``spacing`` m,
     each point with two copies moved inward (against its normal) by |N(5 cm, 5 cm)|, as in the
@@ -351,8 +382,8 @@ def section_figure(occ: BodyOccupancy, path: str, steps: int) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--sections", nargs="+", default=["iou", "speed", "self", "scene", "figure"],
-                   choices=["iou", "speed", "self", "scene", "figure"])  # fmt: skip
+    p.add_argument("--sections", nargs="+", default=["iou", "speed", "self", "variants", "scene", "figure"],
+                   choices=["iou", "speed", "self", "variants", "scene", "figure"])  # fmt: skip
     p.add_argument("--weights", default=None, help="an occupancy file (default: the shipped one)")
     p.add_argument("--bodies", type=int, default=50)
     p.add_argument("--points", type=int, default=100_000)
@@ -378,6 +409,8 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     if "self" in args.sections:
         section_self(occ, args.poses, args.steps, args.png, args.batch, lr=args.lr, prior_weight=args.prior_weight)
+    if "variants" in args.sections:
+        section_variants(occ, 20, args.steps)
     if "scene" in args.sections:
         section_scene(occ, args.steps)
     if "figure" in args.sections:

@@ -96,7 +96,8 @@ def resolve_self_intersections(
         gen = generator("resolve", seed, step)
         enc = occupancy.encode(out)
         if rigid_parts:  # the pose acts through the part frames alone
-            enc = PartEncoding(enc.rotation, enc.origin, *(getattr(enc, f).detach() for f in PartEncoding.__slots__[2:]))
+            held = (getattr(enc, f).detach() for f in PartEncoding.__slots__[2:])
+            enc = PartEncoding(enc.rotation, enc.origin, *held)
         term = occupancy.self_intersection_loss(
             enc, vertices=out.vertices, samples=samples, threshold=threshold, generator=gen
         )
