@@ -199,6 +199,14 @@ def test_resolve_reduces_the_self_intersection(shipped):
     assert 0 < float(change) < math.radians(60)
 
 
+def test_resolve_stops_items_separately_with_one_shared_identity(shipped):
+    layer, params, pose = _intersecting_body()
+    pose = torch.cat([torch.zeros_like(pose), pose])  # the T-pose has nothing to resolve
+    res = resolve_self_intersections(shipped, layer, params, pose, steps=30)
+    assert int(res.steps[0]) == 9 and torch.equal(res.pose[0], pose[0])  # ten zero terms, never moved
+    assert float(res.loss[-1, 1]) < 0.25 * float(res.loss[0, 1])
+
+
 def test_extract_mesh_is_a_closed_outward_surface_of_the_right_volume(shipped, bodies):
     out, faces = bodies
     one = BodyOutput(*(x[:1] for x in (out.vertices, out.joints, out.transforms, out.rest_vertices)))

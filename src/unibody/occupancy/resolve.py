@@ -92,7 +92,8 @@ def resolve_self_intersections(
         if callback is not None:
             callback(step, current.detach())
         active = (~done).nonzero().squeeze(1)
-        out = layer(params[active], current[active], transl=None if transl is None else transl[active])
+        ident = params if params.shape[0] == 1 else params[active]  # one identity may serve every pose
+        out = layer(ident, current[active], transl=None if transl is None else transl[active])
         gen = generator("resolve", seed, step)
         enc = occupancy.encode(out)
         if rigid_parts:  # the pose acts through the part frames alone
