@@ -38,7 +38,7 @@ from PIL import Image, ImageDraw
 from unibody.geometry.rotations import axis_angle_to_matrix, rotation_angle
 from unibody.occupancy import BodyOccupancy, resolve_self_intersections
 from unibody.occupancy import data as occ_data
-from unibody.occupancy.metrics import part_intersections
+from unibody.occupancy.metrics import part_intersecting_pairs, part_intersections
 from unibody.occupancy.train import iou
 from unibody.poses import sample_poses
 
@@ -163,6 +163,12 @@ def self_intersecting_poses(count: int, parts, batch: int = 40):
     return torch.cat(params)[:count], torch.cat(poses)[:count], index * batch
 
 
+def joint_change(before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
+    """(B, 76) degrees between the local rotations of the joints below the Hips of two poses."""
+    rel = axis_angle_to_matrix(before[:, 1:]).transpose(-1, -2) @ axis_angle_to_matrix(after[:, 1:])
+    return torch.rad2deg(rotation_angle(rel))
+
+
 def curve_png(path: str, steps, mean_pairs, title: str) -> None:
     w, h, m = 640, 400, 60
     img = Image.new("RGB", (w, h), (255, 255, 255))
@@ -212,8 +218,7 @@ def section_self(occ: BodyOccupancy, count: int, steps: int, png: str | None, ba
     pairs = {s: torch.cat(v).double() for s, v in curve.items()}
     first, last = pairs[0].mean(), pairs[max(pairs)].mean()
     new_pose = torch.cat([r.pose for r in results])
-    rel = axis_angle_to_matrix(pose[:, 1:]).transpose(-1, -2) @ axis_angle_to_matrix(new_pose[:, 1:])
-    change = torch.rad2deg(rotation_angle(rel))
+    change = joint_change(pose, new_pose)
     moved = change > 1.0
     print(f"resolve_self_intersections, {steps} steps, {elapsed / count:.2f} s per pose (batches of {batch}):")
     print(f"  mean intersecting triangle pairs (between parts that may not touch): {first:.1f} -> {last:.1f} "
@@ -251,8 +256,7 @@ def section_variants(occ: BodyOccupancy, count: int, steps: int) -> None:
         elapsed = time.time() - t
         with torch.no_grad():
             after = part_intersections(layer(params, res.pose).vertices, faces, parts).double()
-        rel = axis_angle_to_matrix(pose[:, 1:]).transpose(-1, -2) @ axis_angle_to_matrix(res.pose[:, 1:])
-        change = torch.rad2deg(rotation_angle(rel))
+        change = joint_change(pose, res.pose)
         resolved = (after == 0).double().mean()
         print(f"  {name:56s} pairs {before.mean():.1f} -> {after.mean():.1f}, resolved {resolved:.0%}, "
               f"mean joint change {change.mean():.2f} deg, {elapsed / count:.2f} s per pose")  # fmt: skip
@@ -352,7 +356,6 @@ def _split(vertices: torch.Tensor, faces: torch.Tensor, red: torch.Tensor):
 
 def section_figure(occ: BodyOccupancy, path: str, steps: int) -> None:
     """Held-out body, its marching-cubes occupancy surface, a self-intersecting pose before/after."""
-    from unibody.geometry.intersect import intersecting_pairs
     from unibody.render import MeshSpec
 
     out, faces = occ_data.pose_bodies(1, seed=1, index=3000)
@@ -370,9 +373,7 @@ def section_figure(occ: BodyOccupancy, path: str, steps: int) -> None:
     for label, p in (("self-intersecting (red)", pose[i : i + 1]), (f"resolved, {steps} steps", res.pose)):
         with torch.no_grad():
             v = layer(params[i : i + 1], p).vertices[0]
-        pairs = intersecting_pairs(v, f)
-        lab = occ.parts.face_part
-        pairs = pairs[occ.parts.allowed[lab[pairs[:, 0]], lab[pairs[:, 1]]]]
+        pairs = part_intersecting_pairs(v, f, occ.parts)
         red = torch.zeros(len(f), dtype=torch.bool)
         red[pairs.flatten()] = True
         panels.append(_panel(_split(v, f, red), f"{label}: {len(pairs)} pairs"))

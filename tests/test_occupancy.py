@@ -151,7 +151,7 @@ def test_winding_numbers_label_a_posed_body(bodies):
     assert inside[:, 0].all() and not inside[:, 1].any()
 
 
-def _intersecting_body(layer_dtype=torch.float32):
+def _intersecting_body():
     """A body whose left hand sinks into the chest (a forearm folded across the torso)."""
     from unibody.body import BodyLayer
 

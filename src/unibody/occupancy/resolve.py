@@ -10,6 +10,7 @@ per-item terms).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -19,7 +20,6 @@ from .._checks import check_finite, check_shape
 from ..body import BodyLayer
 from .data import generator
 from .field import BodyOccupancy
-from .model import PartEncoding
 
 __all__ = ["Resolved", "resolve_self_intersections"]
 
@@ -97,8 +97,7 @@ def resolve_self_intersections(
         gen = generator("resolve", seed, step)
         enc = occupancy.encode(out)
         if rigid_parts:  # the pose acts through the part frames alone
-            held = (getattr(enc, f).detach() for f in PartEncoding.__slots__[2:])
-            enc = PartEncoding(enc.rotation, enc.origin, *held)
+            enc = dataclasses.replace(enc.detach(), rotation=enc.rotation, origin=enc.origin)
         term = occupancy.self_intersection_loss(
             enc, vertices=out.vertices, samples=samples, threshold=threshold, generator=gen
         )

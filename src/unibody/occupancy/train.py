@@ -29,14 +29,14 @@ __all__ = ["TrainConfig", "make_net", "iou", "evaluate", "train"]
 
 @dataclass(frozen=True)
 class TrainConfig:
-    steps: int = 6000
+    steps: int = 5000
     bodies: int = 8
     per_part: int = 256
     lr: float = 1e-3
     min_lr: float = 1e-5
     identities: int = 1000
     seed: int = 0
-    eval_every: int = 500
+    eval_every: int = 250
     eval_bodies: int = 16
     save_every: int = 100
 
