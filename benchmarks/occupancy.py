@@ -370,7 +370,7 @@ def section_figure(occ: BodyOccupancy, path: str, steps: int) -> None:
         _panel([MeshSpec(out.vertices[0].numpy(), faces.numpy(), (0.80, 0.66, 0.58))], "held-out body (mesh)"),
         _panel([MeshSpec(verts.numpy(), tris.numpy(), (0.55, 0.68, 0.85))], "occupancy, marching cubes 128^3"),
     ]
-    for label, p in (("self-intersecting (red)", pose[i : i + 1]), (f"resolved, {steps} steps", res.pose)):
+    for label, p in (("self-intersecting (red)", pose[i : i + 1]), (f"resolved (stopped at step {int(res.steps[0])})", res.pose)):
         with torch.no_grad():
             v = layer(params[i : i + 1], p).vertices[0]
         pairs = part_intersecting_pairs(v, f, occ.parts)
@@ -378,6 +378,11 @@ def section_figure(occ: BodyOccupancy, path: str, steps: int) -> None:
         red[pairs.flatten()] = True
         panels.append(_panel(_split(v, f, red), f"{label}: {len(pairs)} pairs"))
     Image.fromarray(np.concatenate(panels, 1)).save(path)
+    change = joint_change(pose[i : i + 1], res.pose)[0]
+    top = int(change.argmax())
+    print(f"figure pose: {int(counts[i])} pairs, stopped at step {int(res.steps[0])}; "
+          f"{int((change > 1).sum())} joints moved > 1 deg, the most {change[top]:.1f} deg "
+          f"({occ_data._layer().joint_names[top + 2]})")  # fmt: skip
     print(f"wrote {path}")
 
 
