@@ -370,7 +370,10 @@ def section_figure(occ: BodyOccupancy, path: str, steps: int) -> None:
         _panel([MeshSpec(out.vertices[0].numpy(), faces.numpy(), (0.80, 0.66, 0.58))], "held-out body (mesh)"),
         _panel([MeshSpec(verts.numpy(), tris.numpy(), (0.55, 0.68, 0.85))], "occupancy, marching cubes 128^3"),
     ]
-    for label, p in (("self-intersecting (red)", pose[i : i + 1]), (f"resolved (stopped at step {int(res.steps[0])})", res.pose)):
+    for label, p in (
+        ("self-intersecting (red)", pose[i : i + 1]),
+        (f"resolved (stopped at step {int(res.steps[0])})", res.pose),
+    ):
         with torch.no_grad():
             v = layer(params[i : i + 1], p).vertices[0]
         pairs = part_intersecting_pairs(v, f, occ.parts)
