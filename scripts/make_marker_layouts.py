@@ -28,7 +28,7 @@ SKIN = 0.0095  # m, a 14 mm marker on its base (paper 003 / MoSh++ default)
 # Left-side rules; a label starting with "L" gets an "R" mirror. Central markers have no mirror.
 RULES: dict[str, tuple] = {
     # head and trunk
-    "LFHD": ("Head", "HeadEnd", 0.55, (0.0, 0.0, 0.0), (0.5, 0.15, 1.0)),
+    "LFHD": ("Head", "HeadEnd", 0.55, (0.0, 0.0, 0.0), (1.2, 0.15, 1.0)),  # the temple (PiG, CGM2)
     "LBHD": ("Head", "HeadEnd", 0.45, (0.0, 0.0, 0.0), (0.5, 0.1, -1.0)),
     "C7": ("Neck1", "Neck1", 0.0, (0.0, -0.01, 0.0), (0.0, 0.25, -1.0)),
     "T10": ("Spine2", "Chest", 1.0, (0.0, 0.03, 0.0), (0.0, 0.0, -1.0)),
@@ -47,7 +47,7 @@ RULES: dict[str, tuple] = {
     "LASI": ("Hips", "LeftLeg", 0.9, (0.0, 0.09, 0.0), (0.25, 0.0, 1.0)),
     "LPSI": ("Hips", "LeftLeg", 0.45, (0.0, 0.09, 0.0), (0.0, 0.0, -1.0)),
     "LFWT": ("Hips", "LeftLeg", 1.0, (0.0, 0.12, 0.0), (0.35, 0.0, 1.0)),
-    "LBWT": ("Hips", "LeftLeg", 0.6, (0.0, 0.12, 0.0), (0.2, 0.0, -1.0)),
+    "LBWT": ("Hips", "LeftLeg", 0.5, (0.0, 0.12, 0.0), (0.1, 0.0, -1.0)),  # over the PSIS, ~10 cm apart
     # legs
     "LTHI": ("LeftLeg", "LeftShin", 0.6, (0.0, 0.0, 0.0), (1.0, 0.0, 0.25)),
     "LKNE": ("LeftShin", "LeftShin", 0.0, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0)),

@@ -32,12 +32,14 @@ import torch
 from unibody.mocap.corrupt import MocapBatch
 from unibody.mocap.labeler import Labeler, labeling_loss, predict
 from unibody.mocap.layout import MarkerLayout
+from unibody.mocap.pipeline import load_labeler
 from unibody.mocap.synthetic import SyntheticConfig, SyntheticMocap
 
 
-def synthetic(layout: MarkerLayout, subsets: list[str], pool_seed: int, identities: int) -> SyntheticMocap:
+def synthetic(layout: MarkerLayout, subsets: list[str], pool_seed: int, identities: int, extras: int) -> SyntheticMocap:
     subs = tuple(MarkerLayout.load(s).labels for s in subsets)
-    return SyntheticMocap(layout, SyntheticConfig(identities=identities, pool_seed=pool_seed, subsets=subs))
+    cfg = SyntheticConfig(identities=identities, pool_seed=pool_seed, subsets=subs, extras=extras)
+    return SyntheticMocap(layout, cfg)
 
 
 def accuracy(model: Labeler, batches: list[MocapBatch]) -> tuple[float, float]:
@@ -76,6 +78,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--layers", type=int, default=4)
     p.add_argument("--heads", type=int, default=4)
     p.add_argument("--identities", type=int, default=1024)
+    p.add_argument("--extras", type=int, default=0, help="up to this many markers of another protocol per frame")
     p.add_argument("--pool-seed", type=int, default=0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--val-frames", type=int, default=2048)
@@ -83,19 +86,25 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--checkpoint-every", type=float, default=120.0, help="seconds")
     p.add_argument("--log-every", type=float, default=20.0, help="seconds")
     p.add_argument("--stop-at", type=int, help="checkpoint and stop after this step (resume later)")
+    p.add_argument("--init", help="start from these labeler weights (name or path; same labels and size)")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     ckpt_path = args.out / "checkpoint.pt"
 
     layout = MarkerLayout.load(args.layout)
-    train_data = synthetic(layout, args.subsets, args.pool_seed, args.identities)
-    val_data = synthetic(layout, args.subsets, args.pool_seed + 1000, 256)  # disjoint bodies
+    train_data = synthetic(layout, args.subsets, args.pool_seed, args.identities, args.extras)
+    val_data = synthetic(layout, args.subsets, args.pool_seed + 1000, 256, args.extras)  # disjoint bodies
     val_gen = torch.Generator().manual_seed(10_000 + args.seed)
     val = [val_data.sample(min(256, args.val_frames), val_gen) for _ in range(max(1, args.val_frames // 256))]
 
     torch.manual_seed(args.seed)
     model = Labeler(len(layout), label_names=layout.labels, width=args.width, layers=args.layers, heads=args.heads)
+    if args.init:
+        start = load_labeler(args.init)
+        if start.label_names != layout.labels:
+            raise SystemExit(f"--init: {args.init} labels {start.label_names} differ from layout {layout.name}")
+        model.load_state_dict(start.state_dict())
     opt = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
 
     def lr_at(step: int) -> float:  # linear warm-up, then cosine to 2 % of the base rate
@@ -165,9 +174,11 @@ def main(argv: list[str] | None = None) -> None:
     meta = {
         "command": command,
         "seed": args.seed,
+        "init": args.init,
         "steps": step,
         "layout": layout.name,
         "subsets": args.subsets,
+        "extras": args.extras,
         "synthetic_val_accuracy": round(acc, 5),
         "synthetic_val_marker_accuracy": round(acc_m, 5),
         "val_frames": sum(len(b.points) for b in val),

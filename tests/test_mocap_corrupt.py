@@ -220,3 +220,17 @@ def test_permute_frames_errors():
         permute_frames(x, _gen(), labels=torch.tensor([0.0, 1.0, 2.0]), num_labels=2)
     with pytest.raises(ValueError, match="labels: expected shape"):
         permute_frames(x, _gen(), labels=torch.tensor([0, 1]), num_labels=2)
+
+
+def test_extras_are_real_null_points_never_occluded():
+    markers = torch.randn(50, 6, 3, generator=torch.Generator().manual_seed(0))
+    extras = torch.randn(50, 4, 3, generator=torch.Generator().manual_seed(1))
+    extras[:, 3] = float("nan")  # the fourth extra is absent everywhere
+    b = corrupt_frames(markers, torch.Generator().manual_seed(2), occlusions=(6, 6), ghosts=(0, 0), extras=extras)
+    assert b.points.shape == (50, 10, 3)
+    assert not b.available.any()  # every marker occluded ...
+    assert (b.mask.sum(1) == 3).all() and (b.labels[b.mask] == 6).all()  # ... the three extras stay, null
+    got = b.points[b.mask].view(50, 3, 3)
+    assert torch.allclose(got.sort(dim=1).values, extras[:, :3].sort(dim=1).values)
+    with pytest.raises(ValueError, match="extras"):
+        corrupt_frames(markers, torch.Generator(), extras=extras[:10])

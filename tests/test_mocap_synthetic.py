@@ -41,7 +41,7 @@ def test_layout_is_anatomical(body_pca_mean):
     """Left markers lie on the body's left (+X), mirrored pairs are symmetric, heights are ordered."""
     v = body_pca_mean
     lay = MarkerLayout.load("superset")
-    p = {x: v[i] for x, i in zip(lay.labels, lay.vertices)}
+    p = {x: v[i] for x, i in zip(lay.labels, lay.vertices, strict=True)}
     for x in lay.labels:
         if x[0] == "L" and "R" + x[1:] in p:
             assert p[x][0] > 0.02 and p["R" + x[1:]][0] < -0.02, x
@@ -87,20 +87,24 @@ def test_sample_poses_seeded_and_plausible():
 
 @pytest.fixture(scope="module")
 def synthetic():
-    cfg = SyntheticConfig(identities=8, jitter_radius=0.0, distance=(0.01, 0.01), noise=(0.0, 0.0), spread=0.0, stick_prob=0.0)
+    cfg = SyntheticConfig(
+        identities=8, jitter_radius=0.0, loose=(), distance=(0.01, 0.01), noise=(0.0, 0.0), spread=0.0, stick_prob=0.0
+    )
     return SyntheticMocap(MarkerLayout.load("pig39"), cfg)
 
 
 def test_synthetic_markers_match_full_mesh(synthetic):
     """Skinning only the marker vertices equals posing the whole mesh (exact without skin offset)."""
     syn = synthetic
-    cfg = SyntheticConfig(identities=8, jitter_radius=0.0, distance=(0.0, 0.0), noise=(0.0, 0.0), spread=0.0, stick_prob=0.0)
+    cfg = SyntheticConfig(
+        identities=8, jitter_radius=0.0, loose=(), distance=(0.0, 0.0), noise=(0.0, 0.0), spread=0.0, stick_prob=0.0
+    )
     syn0 = SyntheticMocap(syn.layout, cfg)
     g = torch.Generator().manual_seed(5)
     m = syn0.markers(4, g)
     g = torch.Generator().manual_seed(5)
     ident = torch.randint(8, (4,), generator=g)
-    pose = sample_poses(4, g)
+    pose = sample_poses(4, g, **cfg.pose)
     coeffs = torch.randn(8, 16, generator=torch.Generator().manual_seed(0))
     out = syn0.layer(coeffs[ident], pose)
     ref = place_markers(out.vertices, syn0.layer.faces, syn0.layout.vertices, torch.zeros(len(syn0.layout)))
@@ -113,16 +117,49 @@ def test_synthetic_markers_match_full_mesh(synthetic):
 def test_synthetic_jitter_and_subsets():
     lay = MarkerLayout.load("pig39")
     pig35 = MarkerLayout.load("pig35").labels
-    cfg = SyntheticConfig(identities=4, jitter_radius=0.02, subsets=(pig35,), subset_prob=0.5, noise=(0.0, 0.0))
+    cfg = SyntheticConfig(identities=4, subsets=(pig35,), subset_prob=0.5, noise=(0.0, 0.0))
     syn = SyntheticMocap(lay, cfg)
+    radii = syn.jitter_radii()
+    assert float(radii[lay.index("LKNE")]) == pytest.approx(cfg.jitter_radius)
+    assert float(radii[lay.index("RTHI")]) == pytest.approx(0.08)
+    assert float(radii[lay.index("LFHD")]) == pytest.approx(0.05)
     assert (syn.num_candidates > 1).all()
-    rest_mean = syn.layer.identity(torch.zeros(1, 16))[0]
+    rest_mean = syn.layer.identity(torch.zeros(1, 16))
+    normal = vertex_normals(rest_mean, syn.layer.faces)[0]
+    rest_mean = rest_mean[0]
     cand = syn.used[syn.candidates]  # (M, C) vertex ids
     for i in range(len(lay)):
         ids = cand[i, : syn.num_candidates[i]]
-        assert (rest_mean[ids] - rest_mean[lay.vertices[i]]).norm(dim=-1).max() <= 0.02 + 1e-6
+        assert (rest_mean[ids] - rest_mean[lay.vertices[i]]).norm(dim=-1).max() <= radii[i] + 1e-6
+        assert (normal[ids] @ normal[lay.vertices[i]]).min() >= cfg.jitter_cos - 1e-6  # same side of the limb
+    # a loose marker really spreads: its placements span most of its radius
+    thi = cand[lay.index("RTHI"), : syn.num_candidates[lay.index("RTHI")]]
+    assert (rest_mean[thi] - rest_mean[lay.vertices[lay.index("RTHI")]]).norm(dim=-1).max() > 0.06
     m = syn.markers(2000, torch.Generator().manual_seed(0))
     extra = torch.tensor([x not in pig35 for x in lay.labels])
     dropped = m[:, extra].isnan().any(-1).all(-1).float().mean()
     assert abs(float(dropped) - 0.5) < 0.05
     assert not m[:, ~extra].isnan().any()
+
+
+def test_synthetic_extra_markers_are_null_and_off_the_layout():
+    """Markers of another protocol: 0..E per frame, on the body away from the layout, labelled null."""
+    lay = MarkerLayout.load("pig39")
+    cfg = SyntheticConfig(identities=4, extras=10, extra_prob=1.0, noise=(0.0, 0.0), spread=0.0, stick_prob=0.0)
+    syn = SyntheticMocap(lay, cfg)
+    rest_mean = syn.layer.identity(torch.zeros(1, 16))[0]
+    pool = syn.used[syn.extra_pool]
+    assert len(pool) == 2048
+    assert torch.cdist(rest_mean[pool], rest_mean[lay.vertices]).min() >= cfg.extra_min_distance
+    markers, extra = syn.markers_and_extras(4000, torch.Generator().manual_seed(1), 10)
+    assert markers.shape == (4000, 39, 3) and extra.shape == (4000, 10, 3)
+    count = torch.isfinite(extra).all(-1).sum(1)
+    assert count.min() == 0 and count.max() == 10 and abs(float(count.float().mean()) - 5.0) < 0.2
+    # on the body: an extra marker is within 0.3 m of the frame's layout markers, not at the origin
+    near = torch.cdist(extra.nan_to_num(0.0), markers).min(-1).values
+    assert near[torch.isfinite(extra).all(-1)].max() < 0.3
+    batch = syn.sample(64, torch.Generator().manual_seed(2))
+    assert batch.points.shape[1] == 39 + cfg.ghosts[1] + 10
+    null_real = (batch.labels == 39) & batch.mask
+    assert null_real.sum(1).max() > cfg.ghosts[1]  # more null points than ghosts alone can give
+    assert (batch.available.sum(1) == (batch.mask & (batch.labels < 39)).sum(1)).all()

@@ -135,6 +135,7 @@ def corrupt_frames(
     ghost_scale: float = 1.0,
     permute: bool = True,
     exact: bool = False,
+    extras: torch.Tensor | None = None,
 ) -> MocapBatch:
     """Occlude, add ghosts to and shuffle a batch of labelled marker frames (paper 003 §4.4).
 
@@ -151,9 +152,11 @@ def corrupt_frames(
             holds marker i (zeros when absent) and slots M.. the ghosts.
         exact: occlude exactly ``occlusions[1]`` markers per frame (capped as above), as
             in the exact-occlusion benchmark (paper 003 Table 2).
+        extras: (B, E, 3) m, optional points that are real but not in the layout (markers of
+            another protocol); NaN where absent. Labelled null, never occluded.
 
     Returns:
-        A :class:`MocapBatch` with N = M + ghosts[1] slots per frame.
+        A :class:`MocapBatch` with N = M + ghosts[1] (+ E) slots per frame.
 
     Raises:
         TypeError: non-float markers. ValueError: bad shapes, inf values or bad ranges.
@@ -178,9 +181,13 @@ def corrupt_frames(
     n_ghost = _draw_counts(g_lo, g_hi, b, generator, dev).masked_fill(n_vis == 0, 0)
     ghost_on = torch.arange(g_hi, device=dev) < n_ghost[:, None]
 
-    slots = torch.cat([markers, ghost], dim=1)
-    real = torch.cat([available, ghost_on], dim=1)
-    slot_labels = torch.cat([torch.arange(m, device=dev), torch.full((g_hi,), m, device=dev)]).expand(b, -1)
+    slots, real = torch.cat([markers, ghost], dim=1), torch.cat([available, ghost_on], dim=1)
+    if extras is not None:
+        check_shape(extras, "B E 3", name="extras", sizes={"B": b})
+        slots = torch.cat([slots, extras.to(markers.dtype)], dim=1)
+        real = torch.cat([real, ~torch.isnan(extras).any(-1)], dim=1)
+    null = torch.full((slots.shape[1] - m,), m, device=dev)
+    slot_labels = torch.cat([torch.arange(m, device=dev), null]).expand(b, -1)
     return _pack(slots, real, slot_labels, available, generator if permute else None)[0]
 
 

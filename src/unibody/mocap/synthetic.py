@@ -4,9 +4,14 @@ Bodies come from the native PCA shape space (all sizes and ages it spans, childr
 included), poses from :func:`unibody.poses.sample_poses` (uniform heading, a fraction
 tumbling), markers from a :class:`~unibody.mocap.layout.MarkerLayout`. Per sample:
 
-- placement jitter: each marker moves to a random vertex within ``jitter_radius`` of its
-  layout vertex on the rest mesh (the paper's 1-ring, widened: our canonical mesh is
-  denser than SMPL-X's, and our layouts come from rules, not from the target lab);
+- placement jitter: each marker moves to a random vertex within its jitter radius of its
+  layout vertex on the rest mesh, on the same side of the body (rest normals within
+  ``jitter_cos``). The paper uses the 1-ring of a layout derived from the target lab; our
+  layouts come from rules, so the radius follows how tightly the placement guides fix
+  each marker: bony landmarks ``jitter_radius``, the ``loose`` groups more (Plug-in Gait
+  and CMU/KIT guides: thigh, shank, upper-arm and forearm markers at a height "not
+  critical" and placed asymmetrically, RBAK "anywhere over the right scapula", head
+  bands and waist markers placed by eye);
 - marker-to-skin distance uniform in ``distance``; Gaussian noise of a per-frame std
   uniform in ``noise``;
 - optional label subsets (a smaller layout inside the model's, e.g. Plug-in Gait 35
@@ -42,7 +47,11 @@ class SyntheticConfig:
     Attributes:
         identities: size of the pool of PCA bodies drawn once from ``pool_seed``.
         shape_components: PCA coefficients sampled ~ N(0, shape_scale^2), the rest zero.
-        jitter_radius: m, marker placement jitter on the rest mesh.
+        jitter_radius: m, marker placement jitter on the rest mesh (markers not in ``loose``).
+        loose: ``(label suffixes, radius in m)`` groups with their own jitter radius; a label
+            belongs to the first group with a suffix it ends with.
+        jitter_cos: a candidate vertex's rest normal has a cosine of at least this with the
+            layout vertex's normal (jitter stays on the same side of a limb).
         distance: m, marker-to-skin distance range.
         stick_labels, stick_distance, stick_prob: markers that labs often mount on wrist bars
             (MoSh++ uses 0.039 m for them): per sample, with probability ``stick_prob``, they
@@ -50,7 +59,12 @@ class SyntheticConfig:
         noise: m, range of the per-frame Gaussian noise std.
         occlusions, ghosts: per-frame uniform counts (paper: up to 5 and 3).
         subsets: label subsets of the layout, each used for ``subset_prob`` / len of the samples.
-        pose: keyword arguments of :func:`unibody.poses.sample_poses`.
+        extras, extra_prob, extra_min_distance: markers of another protocol on the same body
+            (e.g. pyCGM's 38 extra markers beside Plug-in Gait): a fraction ``extra_prob`` of
+            the batches gets 0..``extras`` per frame on vertices at least ``extra_min_distance``
+            m from every layout vertex; their truth is null.
+        pose: keyword arguments of :func:`unibody.poses.sample_poses` (default: a quarter of
+            the bodies tumbling, for floor work, flips and handstands).
         spread: m, the Hips are placed uniformly in a square of this half-width (lab floor).
     """
 
@@ -58,7 +72,13 @@ class SyntheticConfig:
     pool_seed: int = 0
     shape_components: int = 16
     shape_scale: float = 1.0
-    jitter_radius: float = 0.02
+    jitter_radius: float = 0.025
+    loose: tuple[tuple[tuple[str, ...], float], ...] = (
+        (("THI", "TIB", "SHN", "UPA", "FRM", "BAK", "BAC"), 0.08),
+        (("FHD", "BHD", "FWT", "BWT", "ASI", "PSI"), 0.05),
+        (("STRN", "CLAV", "C7", "T10", "FIN"), 0.04),
+    )
+    jitter_cos: float = 0.5
     distance: tuple[float, float] = (0.006, 0.02)
     stick_labels: tuple[str, ...] = ("LWRA", "LWRB", "RWRA", "RWRB")
     stick_distance: tuple[float, float] = (0.03, 0.06)
@@ -68,7 +88,10 @@ class SyntheticConfig:
     ghosts: tuple[int, int] = (0, 3)
     subsets: tuple[tuple[str, ...], ...] = ()
     subset_prob: float = 0.3
-    pose: dict = field(default_factory=dict)
+    extras: int = 0
+    extra_prob: float = 0.3
+    extra_min_distance: float = 0.03
+    pose: dict = field(default_factory=lambda: {"tumble": 0.25})
     spread: float = 2.0
 
 
@@ -82,13 +105,21 @@ class SyntheticMocap:
         self.layer = layer
         gen = torch.Generator().manual_seed(config.pool_seed)
         coeffs = config.shape_scale * torch.randn(config.identities, config.shape_components, generator=gen)
-        # Candidate vertices of each marker: within jitter_radius of its vertex on the mean rest mesh.
+        # Candidate vertices of each marker: within its jitter radius of its vertex on the mean rest mesh.
         with torch.no_grad():
-            mean = layer.identity(torch.zeros(1, config.shape_components))[0]
+            mean = layer.identity(torch.zeros(1, config.shape_components))
+            normal = vertex_normals(mean, layer.faces)[0]
+            mean = mean[0]
             d = torch.cdist(mean[layout.vertices], mean)  # (M, V)
-            near = d <= config.jitter_radius
+            same_side = normal[layout.vertices] @ normal.T >= config.jitter_cos
+            near = (d <= self.jitter_radii()[:, None]) & same_side
             near[torch.arange(len(layout)), layout.vertices] = True
-            used = near.any(0).nonzero().squeeze(1)  # (U,) vertex ids any marker may take
+            far = d.min(0).values >= config.extra_min_distance  # (V,) candidates of extra markers
+            pool = far.nonzero().squeeze(1)
+            pool = pool[torch.randperm(len(pool), generator=gen)[:2048]].sort().values if config.extras else pool[:0]
+            taken = near.any(0)
+            taken[pool] = True
+            used = taken.nonzero().squeeze(1)  # (U,) vertex ids any marker may take
             local = near[:, used]  # (M, U)
             self.num_candidates = local.sum(1)  # (M,)
             c = int(self.num_candidates.max())
@@ -100,6 +131,7 @@ class SyntheticMocap:
             w[used] = True
             pos = torch.full((layer.num_vertices,), -1, dtype=torch.long)
             pos[used] = torch.arange(len(used))
+            self.extra_pool = pos[pool]  # (P,) indices into `used`
             rig = Rig.canonical()
             sv, sj, sw = rig.skin_vertex.long(), rig.skin_joint.long(), rig.skin_weight
             keep = w[sv]
@@ -120,8 +152,27 @@ class SyntheticMocap:
             torch.tensor([x in set(s) for x in layout.labels], dtype=torch.bool) for s in config.subsets
         ]
 
+    def jitter_radii(self) -> torch.Tensor:
+        """(M,) m, the placement jitter radius of each layout marker."""
+        radii = []
+        for label in self.layout.labels:
+            groups = [r for suffixes, r in self.config.loose if label.endswith(tuple(suffixes))]
+            radii.append(groups[0] if groups else self.config.jitter_radius)
+        return torch.tensor(radii)
+
     def markers(self, batch: int, generator: torch.Generator) -> torch.Tensor:
         """Clean markers (B, M, 3), metres, Y up; NaN for markers outside a drawn subset."""
+        return self.markers_and_extras(batch, generator, 0)[0]
+
+    def markers_and_extras(
+        self, batch: int, generator: torch.Generator, extras: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Clean markers (B, M, 3) and up to ``extras`` markers of another protocol (B, extras, 3).
+
+        The extra markers sit on random vertices at least ``extra_min_distance`` from every
+        layout vertex of the rest mesh, as many per frame as drawn uniformly from
+        [0, extras]; NaN beyond that count.
+        """
         cfg, m = self.config, len(self.layout)
         ident = torch.randint(self.rest.shape[0], (batch,), generator=generator)
         pose = sample_poses(batch, generator, **cfg.pose)
@@ -134,32 +185,45 @@ class SyntheticMocap:
         _, _, mats = self.layer.skin_transforms(prepared, local, transl)  # (B, J, 3, 4)
         pick = (torch.rand(batch, m, generator=generator) * self.num_candidates).long()
         u = self.candidates.gather(1, pick.T).T  # (B, M) indices into `used`
-        x = self.rest[ident[:, None], u]  # (B, M, 3)
+        if extras:
+            pick = torch.randint(len(self.extra_pool), (batch, extras), generator=generator)
+            u = torch.cat([u, self.extra_pool[pick]], dim=1)
+        k = u.shape[1]
+        x = self.rest[ident[:, None], u]  # (B, K, 3)
         n = self.normals[ident[:, None], u]
-        a = torch.einsum("bmj,bjrc->bmrc", self.weights[u], mats)  # blended transforms (B, M, 3, 4)
+        a = torch.einsum("bkj,bjrc->bkrc", self.weights[u], mats)  # blended transforms (B, K, 3, 4)
         posed = (a[..., :3] @ x[..., None]).squeeze(-1) + a[..., 3]
         normal = (a[..., :3] @ n[..., None]).squeeze(-1)
         normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-9)
         lo, hi = cfg.distance
-        dist = lo + (hi - lo) * torch.rand(batch, m, 1, generator=generator)
+        dist = lo + (hi - lo) * torch.rand(batch, k, 1, generator=generator)
         if self.stick.any():
             slo, shi = cfg.stick_distance
             stick = slo + (shi - slo) * torch.rand(batch, m, 1, generator=generator)
             on = (torch.rand(batch, 1, 1, generator=generator) < cfg.stick_prob) & self.stick[:, None]
-            dist = torch.where(on, stick, dist)
+            dist[:, :m] = torch.where(on, stick, dist[:, :m])
         sigma = cfg.noise[0] + (cfg.noise[1] - cfg.noise[0]) * torch.rand(batch, 1, 1, generator=generator)
-        out = posed + normal * dist + sigma * torch.randn(batch, m, 3, generator=generator)
+        out = posed + normal * dist + sigma * torch.randn(batch, k, 3, generator=generator)
+        out, extra = out[:, :m], out[:, m:]
         if self.subset_masks:
             which = torch.randint(len(self.subset_masks), (batch,), generator=generator)
             use = torch.rand(batch, generator=generator) < cfg.subset_prob
             masks = torch.stack(self.subset_masks)[which]  # (B, M)
             drop = use[:, None] & ~masks
             out = torch.where(drop[..., None], torch.full_like(out, float("nan")), out)
-        return out
+        if extras:
+            count = torch.randint(extras + 1, (batch, 1), generator=generator)
+            extra = torch.where((torch.arange(extras) >= count)[..., None], float("nan"), extra)
+        return out, extra
 
     def sample(self, batch: int, generator: torch.Generator) -> MocapBatch:
-        """A corrupted, permuted batch of frames."""
+        """A corrupted, permuted batch of frames.
+
+        With probability ``extra_prob`` the whole batch (one padded size) also carries up to
+        ``extras`` markers of another protocol per frame, labelled null.
+        """
         cfg = self.config
         with torch.no_grad():
-            clean = self.markers(batch, generator)
-            return corrupt_frames(clean, generator, occlusions=cfg.occlusions, ghosts=cfg.ghosts)
+            on = cfg.extras > 0 and float(torch.rand((), generator=generator)) < cfg.extra_prob
+            clean, extra = self.markers_and_extras(batch, generator, cfg.extras if on else 0)
+            return corrupt_frames(clean, generator, occlusions=cfg.occlusions, ghosts=cfg.ghosts, extras=extra)
