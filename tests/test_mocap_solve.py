@@ -18,7 +18,7 @@ import torch
 from unibody.body import BodyLayer
 from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.io.motion import load_motion, save_motion
-from unibody.mocap._solve_stages import BODY_JOINTS, MarkerBody
+from unibody.mocap._marker_body import BODY_JOINTS, MarkerBody
 from unibody.mocap.layout import MarkerLayout, place_markers
 from unibody.mocap.solve import (
     SolveConfig,

@@ -102,7 +102,7 @@ class MarkerLayout:
     def to_json(self) -> dict:
         markers = {
             x: {"vertex": int(v), "distance": round(float(d), 5)}
-            for x, v, d in zip(self.labels, self.vertices, self.distance)
+            for x, v, d in zip(self.labels, self.vertices, self.distance, strict=True)
         }
         return {"format": LAYOUT_FORMAT, "name": self.name, "topology": "canonical", "markers": markers}
 

@@ -59,7 +59,7 @@ def render_markers(
             draw = ImageDraw.Draw(img)
             px = project(cam, np.where(keep[:, None], m, 0.0), size, size)
             toward = (m - np.asarray(cam.target)) @ (np.asarray(cam.eye) - np.asarray(cam.target))
-            for (x, y, _), label, ok, t in zip(px, labels, keep, toward):
+            for (x, y, _), label, ok, t in zip(px, labels, keep, toward, strict=True):
                 if ok and t > 0:
                     draw.text((x + 4, y - 6), label, fill=(20, 20, 20))
         halves.append(np.asarray(img))

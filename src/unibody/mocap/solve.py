@@ -58,7 +58,9 @@ import torch
 
 from .._checks import check_shape, check_tensor
 from ..io.motion import Motion
-from ._solve_stages import MarkerBody, Stage1Result, stage1, stage2
+from ._marker_body import MarkerBody
+from ._stage1 import Stage1Result, stage1
+from ._stage2 import stage2
 from .layout import MarkerLayout
 
 __all__ = [
