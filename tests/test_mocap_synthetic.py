@@ -51,6 +51,9 @@ def test_layout_is_anatomical(body_pca_mean):
     heights = [float(p[x][1]) for x in order]
     assert heights == sorted(heights)
     assert p["STRN"][2] > 0.05 and p["T10"][2] < -0.05  # front / back
+    # front head markers on the temples (head bands), back waist markers over the PSIS dimples
+    assert 0.10 < float((p["LFHD"] - p["RFHD"]).norm()) < 0.16
+    assert 0.07 < float((p["LBWT"] - p["RBWT"]).norm()) < 0.13
 
 
 @pytest.fixture(scope="module")
