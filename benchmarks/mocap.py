@@ -79,7 +79,8 @@ def with_real_ghosts(batch: MocapBatch, ghosts: torch.Tensor, null: int) -> Moca
     return MocapBatch(pts, torch.cat([batch.mask, ok], dim=1), labels, batch.available)
 
 
-def per_frame(model: Labeler, marked, real_ghosts, gen, **corruption) -> tuple[np.ndarray, np.ndarray]:
+def per_frame(model: Labeler, marked, real_ghosts, gen, frames: list | None = None, **corruption):
+    """Predicted and true labels of every real point; ``frames`` (a list) receives each point's frame."""
     null = model.num_labels
     m = torch.as_tensor(marked, dtype=torch.float32)
     g = torch.as_tensor(real_ghosts, dtype=torch.float32)
@@ -90,7 +91,27 @@ def per_frame(model: Labeler, marked, real_ghosts, gen, **corruption) -> tuple[n
             pred, _ = predict(model(b.points, b.mask), b.mask)
             preds.append(pred[b.mask])
             truths.append(b.labels[b.mask])
+            if frames is not None:
+                frames.append(b.mask.nonzero()[:, 0] + s)
     return torch.cat(preds), torch.cat(truths)
+
+
+UPRIGHT_BINS = ((0.9, "upright"), (0.5, "leaning"), (-0.5, "lying"), (-1.01, "inverted"))
+
+
+def trunk_up(marked: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    """(T,) cosine between the vertical and the pelvis-to-C7 direction (NaN where unseen)."""
+    pelvis = [names.index(x) for x in names if x[1:] in ("ASI", "PSI", "FWT", "BWT")]
+    up = marked[:, names.index("C7")] - np.nanmean(marked[:, pelvis], axis=1)
+    return up[:, 1] / np.linalg.norm(up, axis=1)
+
+
+def posture_bin(cos: np.ndarray) -> np.ndarray:
+    """Index into UPRIGHT_BINS of each cosine (NaN -> -1)."""
+    out = np.full(cos.shape, -1)
+    for k in reversed(range(len(UPRIGHT_BINS))):
+        out[cos >= UPRIGHT_BINS[k][0]] = k
+    return out
 
 
 def tracklet(model: Labeler, marked, ghosts, gen: torch.Generator, rng) -> dict[str, tuple]:
@@ -131,6 +152,7 @@ def label_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
     )
     table2: dict[str, list] = {}
     pooled: dict[str, dict[str, list]] = {}
+    postures: dict[str, list] = {}
     for name, files in FILES.items():
         model = models[name]
         for rel in files:
@@ -139,7 +161,13 @@ def label_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
             gen = torch.Generator().manual_seed(seed)
             rng = np.random.default_rng(seed)
             clean = per_frame(model, marked, ghosts, gen, occlusions=(0, 0), ghosts=(0, 0))
-            noisy = per_frame(model, marked, ghosts, gen)
+            frames: list = []
+            noisy = per_frame(model, marked, ghosts, gen, frames)
+            bins = torch.from_numpy(posture_bin(trunk_up(marked, model.label_names)))[torch.cat(frames)]
+            for k in range(len(UPRIGHT_BINS)):
+                postures.setdefault(name, [[] for _ in UPRIGHT_BINS])[k].append(
+                    (noisy[0][bins == k], noisy[1][bins == k])
+                )
             tr = tracklet(model, marked, ghosts, gen, rng)
             rows = {"clean": clean, "noisy": noisy, "tr_frame": tr["frame"], "tracklet": tr["tracklet"]}
             for key, val in rows.items():
@@ -152,10 +180,15 @@ def label_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
             )
             for k in range(6):
                 table2.setdefault(name, [[] for _ in range(7)])
-                table2[name][k].append(per_frame(model, marked, ghosts, gen, occlusions=(k, k), ghosts=(0, 0), exact=True))
+                table2[name][k].append(
+                    per_frame(model, marked, ghosts, gen, occlusions=(k, k), ghosts=(0, 0), exact=True)
+                )
             table2[name][6].append(per_frame(model, marked, ghosts, gen, occlusions=(5, 5), ghosts=(3, 3), exact=True))
     for name, rows in pooled.items():
-        s = {k: labeling_scores(*map(torch.cat, zip(*v)), null=models[name].num_labels) for k, v in rows.items()}
+        s = {
+            k: labeling_scores(*map(torch.cat, zip(*v, strict=True)), null=models[name].num_labels)
+            for k, v in rows.items()
+        }
         print(
             f"| **all {name} files** | {name} | | {fmt(s['clean'])} | {fmt(s['noisy'])} | "
             f"{fmt(s['tr_frame'])} | {fmt(s['tracklet'])} |"
@@ -163,7 +196,21 @@ def label_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
     print("\n## Per-frame accuracy / F1 (%) by exact number of occlusions (paper Table 2), pooled files")
     print("| model | 0 | 1 | 2 | 3 | 4 | 5 | 5+G |\n|---|---|---|---|---|---|---|---|")
     for name, cols in table2.items():
-        cells = [fmt(labeling_scores(*map(torch.cat, zip(*c)), null=models[name].num_labels)) for c in cols]
+        cells = [
+            fmt(labeling_scores(*map(torch.cat, zip(*c, strict=True)), null=models[name].num_labels)) for c in cols
+        ]
+        print(f"| {name} | " + " | ".join(cells) + " |")
+    print("\n## Per-frame C+G accuracy / F1 (%) by posture (cosine of the pelvis-to-C7 axis with the vertical)")
+    heads = " | ".join(f"{label} (>= {lo:g})" if lo > -1 else label for lo, label in UPRIGHT_BINS)
+    print(f"| model | {heads} |\n|---|" + "---|" * len(UPRIGHT_BINS))
+    for name, cols in postures.items():
+        cells = []
+        for c in cols:
+            pred, truth = map(torch.cat, zip(*c, strict=True))
+            share = f"{100 * len(truth) / sum(len(t) for x in cols for _, t in x):.0f} % of points"
+            cells.append(
+                f"{fmt(labeling_scores(pred, truth, null=models[name].num_labels))} ({share})" if len(truth) else "-"
+            )
         print(f"| {name} | " + " | ".join(cells) + " |")
 
 
@@ -198,8 +245,9 @@ def solve_section(root: Path, png: Path | None) -> None:
             res = solve_sequence(seq, lay)
             dt = time.perf_counter() - t
             r = res.residual[torch.isfinite(res.residual)] * 1000
+            solved = 100 * float(res.solved.float().mean())
             print(
-                f"| {Path(rel).stem} | {lay.name} | {seq.num_frames} | {100 * float(res.solved.float().mean()):.1f} % | "
+                f"| {Path(rel).stem} | {lay.name} | {seq.num_frames} | {solved:.1f} % | "
                 f"{float(r.mean()):.1f} / {float(r.median()):.1f} | {seq.num_frames / dt:.0f} |",
                 flush=True,
             )
