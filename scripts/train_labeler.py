@@ -89,6 +89,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--init", help="start from these labeler weights (name or path; same labels and size)")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
+    rev = git_rev()  # the code the run started from
     args.out.mkdir(parents=True, exist_ok=True)
     ckpt_path = args.out / "checkpoint.pt"
 
@@ -182,7 +183,7 @@ def main(argv: list[str] | None = None) -> None:
         "synthetic_val_accuracy": round(acc, 5),
         "synthetic_val_marker_accuracy": round(acc_m, 5),
         "val_frames": sum(len(b.points) for b in val),
-        "git_rev": git_rev(),
+        "git_rev": rev,
         "torch": str(torch.__version__),
     }
     model.save(args.out / "labeler.pt", meta)

@@ -166,3 +166,16 @@ def test_synthetic_extra_markers_are_null_and_off_the_layout():
     null_real = (batch.labels == 39) & batch.mask
     assert null_real.sum(1).max() > cfg.ghosts[1]  # more null points than ghosts alone can give
     assert (batch.available.sum(1) == (batch.mask & (batch.labels < 39)).sum(1)).all()
+
+
+def test_sample_poses_range_overrides():
+    """A ranges entry replaces that joint's range; other joints keep theirs; unknown joints fail."""
+    wide = {"Head": ((-0.2, -1.0, -0.15), (0.3, 1.0, 0.15), (0.0, 0.0, 0.0))}
+    a = sample_poses(2000, torch.Generator().manual_seed(3))
+    b = sample_poses(2000, torch.Generator().manual_seed(3), ranges=wide)
+    head = joint_index("Head") - 1
+    assert a[:, head, 1].abs().max() <= 0.3 + 1e-6 < b[:, head, 1].abs().max() <= 1.0 + 1e-6
+    knee = joint_index("LeftShin") - 1
+    assert torch.equal(a[:, knee], b[:, knee])  # same stream, same draws elsewhere
+    with pytest.raises(ValueError, match="ranges"):
+        sample_poses(2, torch.Generator(), ranges={"Tail": wide["Head"]})

@@ -89,6 +89,7 @@ def sample_poses(
     tilt: float = 0.3,
     tumble: float = 0.1,
     fingers: bool = True,
+    ranges: dict[str, tuple[tuple[float, float, float], ...]] | None = None,
     dtype: torch.dtype = torch.float32,
 ) -> torch.Tensor:
     """Sample ``n`` body poses.
@@ -100,6 +101,7 @@ def sample_poses(
         tilt: radians, the largest pitch/roll of the Hips for upright samples.
         tumble: fraction of samples with a uniformly random Hips orientation.
         fingers: whether fingers curl (else they stay straight, as in the T-pose).
+        ranges: entries that replace those of :data:`JOINT_RANGES` (same format, left-side names).
         dtype: float32 or float64.
 
     Returns:
@@ -120,7 +122,12 @@ def sample_poses(
         r = torch.tensor(relaxed, dtype=dtype)
         return r + amp * (u - r)
 
-    for name, (lo, hi, relaxed) in JOINT_RANGES.items():
+    table = dict(JOINT_RANGES)
+    for name, value in (ranges or {}).items():
+        if name not in JOINT_RANGES:
+            raise ValueError(f"ranges: unknown joint {name!r}; expected one of {', '.join(JOINT_RANGES)}")
+        table[name] = value
+    for name, (lo, hi, relaxed) in table.items():
         for side in ("Left", "Right") if name.startswith("Left") else ("",):
             v = draw(lo, hi, relaxed)
             if side == "Right":

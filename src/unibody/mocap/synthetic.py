@@ -37,7 +37,19 @@ from ..rig import Rig
 from .corrupt import MocapBatch, corrupt_frames
 from .layout import MarkerLayout, vertex_normals
 
-__all__ = ["SyntheticConfig", "SyntheticMocap"]
+__all__ = ["POSE", "SyntheticConfig", "SyntheticMocap"]
+
+# Poses of the mocap recipe: a quarter of the bodies tumbling (floor work, flips, handstands)
+# and the head turning as far as people turn it (cervical rotation 80-90 deg each way; here up
+# to 95 deg over Neck1, Neck2 and Head, 0.55 rad each; the generic ranges stop at 55 deg).
+POSE = {
+    "tumble": 0.25,
+    "ranges": {
+        "Neck1": ((-0.25, -0.55, -0.2), (0.35, 0.55, 0.2), (0.0, 0.0, 0.0)),
+        "Neck2": ((-0.2, -0.55, -0.15), (0.3, 0.55, 0.15), (0.0, 0.0, 0.0)),
+        "Head": ((-0.2, -0.55, -0.15), (0.3, 0.55, 0.15), (0.0, 0.0, 0.0)),
+    },
+}
 
 
 @dataclass(frozen=True)
@@ -63,8 +75,7 @@ class SyntheticConfig:
             (e.g. pyCGM's 38 extra markers beside Plug-in Gait): a fraction ``extra_prob`` of
             the batches gets 0..``extras`` per frame on vertices at least ``extra_min_distance``
             m from every layout vertex; their truth is null.
-        pose: keyword arguments of :func:`unibody.poses.sample_poses` (default: a quarter of
-            the bodies tumbling, for floor work, flips and handstands).
+        pose: keyword arguments of :func:`unibody.poses.sample_poses` (default :data:`POSE`).
         spread: m, the Hips are placed uniformly in a square of this half-width (lab floor).
     """
 
@@ -91,7 +102,7 @@ class SyntheticConfig:
     extras: int = 0
     extra_prob: float = 0.3
     extra_min_distance: float = 0.03
-    pose: dict = field(default_factory=lambda: {"tumble": 0.25})
+    pose: dict = field(default_factory=lambda: dict(POSE))
     spread: float = 2.0
 
 
