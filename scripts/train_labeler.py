@@ -122,11 +122,12 @@ def main(argv: list[str] | None = None) -> None:
         opt.load_state_dict(state["opt"])
         gen.set_state(state["gen"])
         step = int(state["step"])
+        rev = state.get("git_rev", rev)
         print(f"resumed from {ckpt_path} at step {step}", flush=True)
 
     def save_checkpoint() -> None:
         tmp = ckpt_path.with_suffix(".tmp")
-        torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "gen": gen.get_state(), "step": step}, tmp)
+        torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "gen": gen.get_state(), "step": step, "git_rev": rev}, tmp)
         tmp.replace(ckpt_path)
 
     stop = {"now": False}
