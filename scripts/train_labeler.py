@@ -127,7 +127,8 @@ def main(argv: list[str] | None = None) -> None:
 
     def save_checkpoint() -> None:
         tmp = ckpt_path.with_suffix(".tmp")
-        torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "gen": gen.get_state(), "step": step, "git_rev": rev}, tmp)
+        state = {"model": model.state_dict(), "opt": opt.state_dict(), "gen": gen.get_state(), "step": step}
+        torch.save({**state, "git_rev": rev}, tmp)
         tmp.replace(ckpt_path)
 
     stop = {"now": False}
