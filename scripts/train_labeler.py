@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--checkpoint-every", type=float, default=120.0, help="seconds")
     p.add_argument("--log-every", type=float, default=20.0, help="seconds")
     p.add_argument("--stop-at", type=int, help="checkpoint and stop after this step (resume later)")
-    p.add_argument("--init", help="start from these labeler weights (name or path; same labels and size)")
+    p.add_argument("--init", help="start from labeler weights (name or path) or another run's checkpoint.pt")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     rev = git_rev()  # the code the run started from
@@ -101,7 +101,9 @@ def main(argv: list[str] | None = None) -> None:
 
     torch.manual_seed(args.seed)
     model = Labeler(len(layout), label_names=layout.labels, width=args.width, layers=args.layers, heads=args.heads)
-    if args.init:
+    if args.init and args.init.endswith("checkpoint.pt"):  # another run's training checkpoint
+        model.load_state_dict(torch.load(args.init, weights_only=True)["model"])
+    elif args.init:
         start = load_labeler(args.init)
         if start.label_names != layout.labels:
             raise SystemExit(f"--init: {args.init} labels {start.label_names} differ from layout {layout.name}")

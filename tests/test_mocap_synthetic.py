@@ -91,7 +91,14 @@ def test_sample_poses_seeded_and_plausible():
 @pytest.fixture(scope="module")
 def synthetic():
     cfg = SyntheticConfig(
-        identities=8, jitter_radius=0.0, loose=(), distance=(0.01, 0.01), noise=(0.0, 0.0), spread=0.0, stick_prob=0.0
+        identities=8,
+        jitter_radius=0.0,
+        loose=(),
+        segments=(),
+        distance=(0.01, 0.01),
+        noise=(0.0, 0.0),
+        spread=0.0,
+        stick_prob=0.0,
     )
     return SyntheticMocap(MarkerLayout.load("pig39"), cfg)
 
@@ -100,7 +107,14 @@ def test_synthetic_markers_match_full_mesh(synthetic):
     """Skinning only the marker vertices equals posing the whole mesh (exact without skin offset)."""
     syn = synthetic
     cfg = SyntheticConfig(
-        identities=8, jitter_radius=0.0, loose=(), distance=(0.0, 0.0), noise=(0.0, 0.0), spread=0.0, stick_prob=0.0
+        identities=8,
+        jitter_radius=0.0,
+        loose=(),
+        segments=(),
+        distance=(0.0, 0.0),
+        noise=(0.0, 0.0),
+        spread=0.0,
+        stick_prob=0.0,
     )
     syn0 = SyntheticMocap(syn.layout, cfg)
     g = torch.Generator().manual_seed(5)
@@ -124,7 +138,7 @@ def test_synthetic_jitter_and_subsets():
     syn = SyntheticMocap(lay, cfg)
     radii = syn.jitter_radii()
     assert float(radii[lay.index("LKNE")]) == pytest.approx(cfg.jitter_radius)
-    assert float(radii[lay.index("RTHI")]) == pytest.approx(0.08)
+    assert float(radii[lay.index("RTHI")]) == 0.0 and float(radii[lay.index("RBAK")]) == pytest.approx(0.08)
     assert float(radii[lay.index("LFHD")]) == pytest.approx(0.05)
     assert (syn.num_candidates > 1).all()
     rest_mean = syn.layer.identity(torch.zeros(1, 16))
@@ -133,11 +147,14 @@ def test_synthetic_jitter_and_subsets():
     cand = syn.used[syn.candidates]  # (M, C) vertex ids
     for i in range(len(lay)):
         ids = cand[i, : syn.num_candidates[i]]
-        assert (rest_mean[ids] - rest_mean[lay.vertices[i]]).norm(dim=-1).max() <= radii[i] + 1e-6
+        if radii[i] > 0:  # markers placed by bone have radius 0
+            assert (rest_mean[ids] - rest_mean[lay.vertices[i]]).norm(dim=-1).max() <= radii[i] + 1e-6
         assert (normal[ids] @ normal[lay.vertices[i]]).min() >= cfg.jitter_cos - 1e-6  # same side of the limb
-    # a loose marker really spreads: its placements span most of its radius
+    # a segment marker goes anywhere along its bone: RTHI from near the hip to near the knee
     thi = cand[lay.index("RTHI"), : syn.num_candidates[lay.index("RTHI")]]
-    assert (rest_mean[thi] - rest_mean[lay.vertices[lay.index("RTHI")]]).norm(dim=-1).max() > 0.06
+    height = rest_mean[thi, 1]
+    assert float(height.max() - height.min()) > 0.2
+    assert (rest_mean[thi, 0] < -0.05).all()  # on the right leg, lateral
     m = syn.markers(2000, torch.Generator().manual_seed(0))
     extra = torch.tensor([x not in pig35 for x in lay.labels])
     dropped = m[:, extra].isnan().any(-1).all(-1).float().mean()

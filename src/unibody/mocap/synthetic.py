@@ -4,14 +4,15 @@ Bodies come from the native PCA shape space (all sizes and ages it spans, childr
 included), poses from :func:`unibody.poses.sample_poses` (uniform heading, a fraction
 tumbling), markers from a :class:`~unibody.mocap.layout.MarkerLayout`. Per sample:
 
-- placement jitter: each marker moves to a random vertex within its jitter radius of its
-  layout vertex on the rest mesh, on the same side of the body (rest normals within
-  ``jitter_cos``). The paper uses the 1-ring of a layout derived from the target lab; our
-  layouts come from rules, so the radius follows how tightly the placement guides fix
-  each marker: bony landmarks ``jitter_radius``, the ``loose`` groups more (Plug-in Gait
-  and CMU/KIT guides: thigh, shank, upper-arm and forearm markers at a height "not
-  critical" and placed asymmetrically, RBAK "anywhere over the right scapula", head
-  bands and waist markers placed by eye);
+- placement jitter: each marker moves to a random vertex near its layout vertex on the
+  rest mesh, on the same side of the body (rest normals within ``jitter_cos``). The paper
+  uses the 1-ring of a layout derived from the target lab; our layouts come from rules, so
+  the spread follows how tightly the placement guides fix each marker: bony landmarks
+  within ``jitter_radius``; thigh, shank, upper-arm and forearm markers anywhere along
+  their bone (``segments``: Plug-in Gait, CMU and KIT guides place them at a height "not
+  critical", left and right at different heights, e.g. CMU's RTHI high and LTHI low);
+  RBAK "anywhere over the right scapula", head bands and waist markers within the wider
+  ``loose`` radii;
 - marker-to-skin distance uniform in ``distance``; Gaussian noise of a per-frame std
   uniform in ``noise``;
 - optional label subsets (a smaller layout inside the model's, e.g. Plug-in Gait 35
@@ -59,7 +60,13 @@ class SyntheticConfig:
     Attributes:
         identities: size of the pool of PCA bodies drawn once from ``pool_seed``.
         shape_components: PCA coefficients sampled ~ N(0, shape_scale^2), the rest zero.
-        jitter_radius: m, marker placement jitter on the rest mesh (markers not in ``loose``).
+        jitter_radius: m, marker placement jitter on the rest mesh (markers in neither
+            ``segments`` nor ``loose``).
+        segments: ``(label suffix, joint, child joint, lo, hi)``: markers anywhere along a limb
+            (the guides: height "not critical", left and right often at different heights):
+            vertices whose projection on the bone (joint names without their side) falls in
+            [lo, hi] of its length, at the layout vertex's distance from the bone within
+            ``segment_band`` m, on the same side (``jitter_cos``).
         loose: ``(label suffixes, radius in m)`` groups with their own jitter radius; a label
             belongs to the first group with a suffix it ends with.
         jitter_cos: a candidate vertex's rest normal has a cosine of at least this with the
@@ -84,8 +91,16 @@ class SyntheticConfig:
     shape_components: int = 16
     shape_scale: float = 1.0
     jitter_radius: float = 0.025
+    segments: tuple[tuple[str, str, str, float, float], ...] = (
+        ("THI", "Leg", "Shin", 0.15, 0.85),
+        ("TIB", "Shin", "Foot", 0.15, 0.85),
+        ("SHN", "Shin", "Foot", 0.15, 0.85),
+        ("UPA", "Arm", "ForeArm", 0.2, 0.8),
+        ("FRM", "ForeArm", "Hand", 0.2, 0.8),
+    )
+    segment_band: float = 0.03
     loose: tuple[tuple[tuple[str, ...], float], ...] = (
-        (("THI", "TIB", "SHN", "UPA", "FRM", "BAK", "BAC"), 0.08),
+        (("BAK", "BAC"), 0.08),
         (("FHD", "BHD", "FWT", "BWT", "ASI", "PSI"), 0.05),
         (("STRN", "CLAV", "C7", "T10", "FIN"), 0.04),
     )
@@ -124,6 +139,20 @@ class SyntheticMocap:
             d = torch.cdist(mean[layout.vertices], mean)  # (M, V)
             same_side = normal[layout.vertices] @ normal.T >= config.jitter_cos
             near = (d <= self.jitter_radii()[:, None]) & same_side
+            rest0 = layer.prepare_identity(torch.zeros(1, config.shape_components))
+            joints = dict(zip(layer.joint_names, rest0.rest_joints[0], strict=True))
+            for i, label in enumerate(layout.labels):
+                seg = [x for x in config.segments if label.endswith(x[0])]
+                if not seg:
+                    continue
+                _, a, b, lo, hi = seg[0]
+                side = "Left" if label.startswith("L") else "Right"
+                a, b = joints[side + a], joints[side + b]
+                axis = b - a
+                t = (mean - a) @ axis / axis.dot(axis)
+                perp = (mean - a - t[:, None] * axis).norm(dim=1)
+                band = (perp - perp[layout.vertices[i]]).abs() <= config.segment_band
+                near[i] = (t >= lo) & (t <= hi) & band & same_side[i]
             near[torch.arange(len(layout)), layout.vertices] = True
             far = d.min(0).values >= config.extra_min_distance  # (V,) candidates of extra markers
             pool = far.nonzero().squeeze(1)
@@ -164,10 +193,11 @@ class SyntheticMocap:
         ]
 
     def jitter_radii(self) -> torch.Tensor:
-        """(M,) m, the placement jitter radius of each layout marker."""
+        """(M,) m, the placement jitter radius of each layout marker (0 for ``segments`` markers)."""
         radii = []
         for label in self.layout.labels:
             groups = [r for suffixes, r in self.config.loose if label.endswith(tuple(suffixes))]
+            groups += [0.0 for x in self.config.segments if label.endswith(x[0])]  # placed by bone
             radii.append(groups[0] if groups else self.config.jitter_radius)
         return torch.tensor(radii)
 
