@@ -1,11 +1,13 @@
 """Train a mocap labeler for one marker layout on synthetic mocap (paper 003 §4.4-4.5).
 
-    OMP_NUM_THREADS=1 python scripts/train_labeler.py --layout pig39 --subsets pig35 --out build/labeler_pig39 --steps 3000 --threads 1
-    OMP_NUM_THREADS=1 python scripts/train_labeler.py --layout cmu41 --out build/labeler_cmu41 --steps 3000 --threads 1
+    OMP_NUM_THREADS=1 python scripts/train_labeler.py --layout cmu41 --out build/labeler_cmu41 --threads 1
+    OMP_NUM_THREADS=1 python scripts/train_labeler.py --layout pig39 --subsets pig35 --extras 40 \
+        --out build/labeler_pig39 --threads 1
 
-The exact commands behind the shipped weights (a 5,000-step schedule cut to 3,000 partway) are
-in each weights file's ``meta["recipe"]`` and in benchmarks/README.md. Use ``--threads 1``:
-the synthetic sampler's many small ops run several times slower on two threads.
+The shipped weights were trained in three rounds, each starting from the last (``--init``);
+the exact commands and the revision of each round are in each weights file's
+``meta["recipe"]`` and in benchmarks/README.md. Use ``--threads 1``: the synthetic
+sampler's many small ops run several times slower on two threads.
 
 Data is drawn on the fly from :class:`unibody.mocap.synthetic.SyntheticMocap` (a pool of
 PCA bodies from ``--pool-seed``, seeded poses, jitter, noise, occlusions, ghosts). Validation
