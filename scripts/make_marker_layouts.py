@@ -29,7 +29,7 @@ SKIN = 0.0095  # m, a 14 mm marker on its base (paper 003 / MoSh++ default)
 RULES: dict[str, tuple] = {
     # head and trunk
     "LFHD": ("Head", "HeadEnd", 0.55, (0.0, 0.0, 0.0), (1.2, 0.15, 1.0)),  # the temple (PiG, CGM2)
-    "LBHD": ("Head", "HeadEnd", 0.45, (0.0, 0.0, 0.0), (0.5, 0.1, -1.0)),
+    "LBHD": ("Head", "HeadEnd", 0.3, (0.0, 0.0, 0.0), (0.5, -0.1, -1.0)),  # above the occiput: bands tilt up
     "C7": ("Neck1", "Neck1", 0.0, (0.0, -0.01, 0.0), (0.0, 0.25, -1.0)),
     "T10": ("Spine2", "Chest", 1.0, (0.0, 0.03, 0.0), (0.0, 0.0, -1.0)),
     "CLAV": ("Neck1", "Neck1", 0.0, (0.0, -0.035, 0.0), (0.0, 0.0, 1.0)),

@@ -11,8 +11,8 @@ tumbling), markers from a :class:`~unibody.mocap.layout.MarkerLayout`. Per sampl
   within ``jitter_radius``; thigh, shank, upper-arm and forearm markers anywhere along
   their bone (``segments``: Plug-in Gait, CMU and KIT guides place them at a height "not
   critical", left and right at different heights, e.g. CMU's RTHI high and LTHI low);
-  RBAK "anywhere over the right scapula", head bands and waist markers within the wider
-  ``loose`` radii;
+  RBAK "anywhere over the right scapula", head-band, sternum and waist markers within the
+  wider ``loose`` radii;
 - marker-to-skin distance uniform in ``distance``; Gaussian noise of a per-frame std
   uniform in ``noise``;
 - optional label subsets (a smaller layout inside the model's, e.g. Plug-in Gait 35
@@ -41,14 +41,16 @@ from .layout import MarkerLayout, vertex_normals
 __all__ = ["POSE", "SyntheticConfig", "SyntheticMocap"]
 
 # Poses of the mocap recipe: a quarter of the bodies tumbling (floor work, flips, handstands)
-# and the head turning as far as people turn it (cervical rotation 80-90 deg each way; here up
-# to 95 deg over Neck1, Neck2 and Head, 0.55 rad each; the generic ranges stop at 55 deg).
+# and the head turning as far as people turn it (cervical rotation 80-90 deg each way). The
+# sum of three uniform draws seldom reaches its ends, so each of Neck1, Neck2 and Head turns
+# up to 0.65 rad: the neck's yaw then exceeds 45 deg in 7.5 % of the samples (the generic
+# ranges: 0.03 %), the turns at which real sessions confused the head-band markers.
 POSE = {
     "tumble": 0.25,
     "ranges": {
-        "Neck1": ((-0.25, -0.55, -0.2), (0.35, 0.55, 0.2), (0.0, 0.0, 0.0)),
-        "Neck2": ((-0.2, -0.55, -0.15), (0.3, 0.55, 0.15), (0.0, 0.0, 0.0)),
-        "Head": ((-0.2, -0.55, -0.15), (0.3, 0.55, 0.15), (0.0, 0.0, 0.0)),
+        "Neck1": ((-0.25, -0.65, -0.2), (0.35, 0.65, 0.2), (0.0, 0.0, 0.0)),
+        "Neck2": ((-0.2, -0.65, -0.15), (0.3, 0.65, 0.15), (0.0, 0.0, 0.0)),
+        "Head": ((-0.2, -0.65, -0.15), (0.3, 0.65, 0.15), (0.0, 0.0, 0.0)),
     },
 }
 
@@ -64,7 +66,8 @@ class SyntheticConfig:
             ``segments`` nor ``loose``).
         segments: ``(label suffix, joint, child joint, lo, hi)``: markers anywhere along a limb
             (the guides: height "not critical", left and right often at different heights):
-            vertices whose projection on the bone (joint names without their side) falls in
+            vertices whose projection on the bone (joint names without their side; the
+            marker's side is added where such a joint exists) falls in
             [lo, hi] of its length, at the layout vertex's distance from the bone within
             ``segment_band`` m, on the same side (``jitter_cos``).
         loose: ``(label suffixes, radius in m)`` groups with their own jitter radius; a label
@@ -101,8 +104,8 @@ class SyntheticConfig:
     segment_band: float = 0.03
     loose: tuple[tuple[tuple[str, ...], float], ...] = (
         (("BAK", "BAC"), 0.08),
-        (("FHD", "BHD", "FWT", "BWT", "ASI", "PSI"), 0.05),
-        (("STRN", "CLAV", "C7", "T10", "FIN"), 0.04),
+        (("FHD", "BHD", "FWT", "BWT", "ASI", "PSI", "STRN", "CLAV"), 0.05),
+        (("C7", "T10", "FIN"), 0.04),
     )
     jitter_cos: float = 0.5
     distance: tuple[float, float] = (0.006, 0.02)
@@ -147,7 +150,7 @@ class SyntheticMocap:
                     continue
                 _, a, b, lo, hi = seg[0]
                 side = "Left" if label.startswith("L") else "Right"
-                a, b = joints[side + a], joints[side + b]
+                a, b = joints.get(side + a, joints.get(a)), joints.get(side + b, joints.get(b))
                 axis = b - a
                 t = (mean - a) @ axis / axis.dot(axis)
                 perp = (mean - a - t[:, None] * axis).norm(dim=1)
