@@ -88,34 +88,23 @@ def test_sample_poses_seeded_and_plausible():
         sample_poses(2, torch.Generator(), tumble=2.0)
 
 
+def _exact(distance: float) -> SyntheticConfig:
+    """No placement jitter, noise, spread or wrist bars: markers exactly ``distance`` off their vertex."""
+    return SyntheticConfig(
+        identities=8, jitter_radius=0.0, loose=(), segments=(), distance=(distance, distance), noise=(0.0, 0.0),
+        spread=0.0, stick_prob=0.0,
+    )  # fmt: skip
+
+
 @pytest.fixture(scope="module")
 def synthetic():
-    cfg = SyntheticConfig(
-        identities=8,
-        jitter_radius=0.0,
-        loose=(),
-        segments=(),
-        distance=(0.01, 0.01),
-        noise=(0.0, 0.0),
-        spread=0.0,
-        stick_prob=0.0,
-    )
-    return SyntheticMocap(MarkerLayout.load("pig39"), cfg)
+    return SyntheticMocap(MarkerLayout.load("pig39"), _exact(0.01))
 
 
 def test_synthetic_markers_match_full_mesh(synthetic):
     """Skinning only the marker vertices equals posing the whole mesh (exact without skin offset)."""
     syn = synthetic
-    cfg = SyntheticConfig(
-        identities=8,
-        jitter_radius=0.0,
-        loose=(),
-        segments=(),
-        distance=(0.0, 0.0),
-        noise=(0.0, 0.0),
-        spread=0.0,
-        stick_prob=0.0,
-    )
+    cfg = _exact(0.0)
     syn0 = SyntheticMocap(syn.layout, cfg)
     g = torch.Generator().manual_seed(5)
     m = syn0.markers(4, g)
