@@ -38,9 +38,12 @@ from unibody.mocap.pipeline import load_labeler
 from unibody.mocap.synthetic import SyntheticConfig, SyntheticMocap
 
 
-def synthetic(layout: MarkerLayout, subsets: list[str], pool_seed: int, identities: int, extras: int) -> SyntheticMocap:
-    subs = tuple(MarkerLayout.load(s).labels for s in subsets)
-    cfg = SyntheticConfig(identities=identities, pool_seed=pool_seed, subsets=subs, extras=extras)
+def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, identities: int) -> SyntheticMocap:
+    subs = tuple(MarkerLayout.load(s).labels for s in args.subsets)
+    cfg = SyntheticConfig(
+        identities=identities, pool_seed=pool_seed, subsets=subs, extras=args.extras,
+        extra_distance=(args.extra_distance[0], args.extra_distance[1]),
+    )  # fmt: skip
     return SyntheticMocap(layout, cfg)
 
 
@@ -81,6 +84,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--heads", type=int, default=4)
     p.add_argument("--identities", type=int, default=1024)
     p.add_argument("--extras", type=int, default=0, help="up to this many markers of another protocol per frame")
+    p.add_argument(
+        "--extra-distance", type=float, nargs=2, default=(0.03, float("inf")), metavar=("LO", "HI"),
+        help="m, range of an extra marker's distance to the nearest layout vertex",
+    )  # fmt: skip
     p.add_argument("--pool-seed", type=int, default=0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--val-frames", type=int, default=2048)
@@ -96,8 +103,8 @@ def main(argv: list[str] | None = None) -> None:
     ckpt_path = args.out / "checkpoint.pt"
 
     layout = MarkerLayout.load(args.layout)
-    train_data = synthetic(layout, args.subsets, args.pool_seed, args.identities, args.extras)
-    val_data = synthetic(layout, args.subsets, args.pool_seed + 1000, 256, args.extras)  # disjoint bodies
+    train_data = synthetic(args, layout, args.pool_seed, args.identities)
+    val_data = synthetic(args, layout, args.pool_seed + 1000, 256)  # disjoint bodies
     val_gen = torch.Generator().manual_seed(10_000 + args.seed)
     val = [val_data.sample(min(256, args.val_frames), val_gen) for _ in range(max(1, args.val_frames // 256))]
 
@@ -186,6 +193,7 @@ def main(argv: list[str] | None = None) -> None:
         "layout": layout.name,
         "subsets": args.subsets,
         "extras": args.extras,
+        "extra_distance": list(args.extra_distance),
         "synthetic_val_accuracy": round(acc, 5),
         "synthetic_val_marker_accuracy": round(acc_m, 5),
         "val_frames": sum(len(b.points) for b in val),

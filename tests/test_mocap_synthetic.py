@@ -159,7 +159,7 @@ def test_synthetic_extra_markers_are_null_and_off_the_layout():
     rest_mean = syn.layer.identity(torch.zeros(1, 16))[0]
     pool = syn.used[syn.extra_pool]
     assert len(pool) == 2048
-    assert torch.cdist(rest_mean[pool], rest_mean[lay.vertices]).min() >= cfg.extra_min_distance
+    assert torch.cdist(rest_mean[pool], rest_mean[lay.vertices]).min() >= cfg.extra_distance[0]
     markers, extra = syn.markers_and_extras(4000, torch.Generator().manual_seed(1), 10)
     assert markers.shape == (4000, 39, 3) and extra.shape == (4000, 10, 3)
     count = torch.isfinite(extra).all(-1).sum(1)

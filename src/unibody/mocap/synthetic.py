@@ -81,10 +81,10 @@ class SyntheticConfig:
         noise: m, range of the per-frame Gaussian noise std.
         occlusions, ghosts: per-frame uniform counts (paper: up to 5 and 3).
         subsets: label subsets of the layout, each used for ``subset_prob`` / len of the samples.
-        extras, extra_prob, extra_min_distance: markers of another protocol on the same body
+        extras, extra_prob, extra_distance: markers of another protocol on the same body
             (e.g. pyCGM's 38 extra markers beside Plug-in Gait): a fraction ``extra_prob`` of
-            the batches gets 0..``extras`` per frame on vertices at least ``extra_min_distance``
-            m from every layout vertex; their truth is null.
+            the batches gets 0..``extras`` per frame on vertices whose distance to the nearest
+            layout vertex is in ``extra_distance`` (m); their truth is null.
         pose: keyword arguments of :func:`unibody.poses.sample_poses` (default :data:`POSE`).
         spread: m, the Hips are placed uniformly in a square of this half-width (lab floor).
     """
@@ -119,7 +119,7 @@ class SyntheticConfig:
     subset_prob: float = 0.3
     extras: int = 0
     extra_prob: float = 0.3
-    extra_min_distance: float = 0.03
+    extra_distance: tuple[float, float] = (0.03, float("inf"))
     pose: dict = field(default_factory=lambda: dict(POSE))
     spread: float = 2.0
 
@@ -157,8 +157,9 @@ class SyntheticMocap:
                 band = (perp - perp[layout.vertices[i]]).abs() <= config.segment_band
                 near[i] = (t >= lo) & (t <= hi) & band & same_side[i]
             near[torch.arange(len(layout)), layout.vertices] = True
-            far = d.min(0).values >= config.extra_min_distance  # (V,) candidates of extra markers
-            pool = far.nonzero().squeeze(1)
+            lo, hi = config.extra_distance
+            nearest = d.min(0).values
+            pool = ((nearest >= lo) & (nearest <= hi)).nonzero().squeeze(1)  # candidates of extra markers
             pool = pool[torch.randperm(len(pool), generator=gen)[:2048]].sort().values if config.extras else pool[:0]
             taken = near.any(0)
             taken[pool] = True
@@ -213,8 +214,8 @@ class SyntheticMocap:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Clean markers (B, M, 3) and up to ``extras`` markers of another protocol (B, extras, 3).
 
-        The extra markers sit on random vertices at least ``extra_min_distance`` from every
-        layout vertex of the rest mesh, as many per frame as drawn uniformly from
+        The extra markers sit on random vertices at a distance in ``extra_distance`` from the
+        nearest layout vertex of the rest mesh, as many per frame as drawn uniformly from
         [0, extras]; NaN beyond that count.
         """
         cfg, m = self.config, len(self.layout)
