@@ -42,7 +42,7 @@ def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, id
     subs = tuple(MarkerLayout.load(s).labels for s in args.subsets)
     cfg = SyntheticConfig(
         identities=identities, pool_seed=pool_seed, subsets=subs, extras=args.extras,
-        extra_distance=(args.extra_distance[0], args.extra_distance[1]),
+        extra_distance=(args.extra_distance[0], args.extra_distance[1]), stick_prob=args.stick_prob,
     )  # fmt: skip
     return SyntheticMocap(layout, cfg)
 
@@ -84,6 +84,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--heads", type=int, default=4)
     p.add_argument("--identities", type=int, default=1024)
     p.add_argument("--extras", type=int, default=0, help="up to this many markers of another protocol per frame")
+    p.add_argument("--stick-prob", type=float, default=0.5, help="fraction of samples with wrist bars")
     p.add_argument(
         "--extra-distance", type=float, nargs=2, default=(0.03, float("inf")), metavar=("LO", "HI"),
         help="m, range of an extra marker's distance to the nearest layout vertex",
@@ -194,6 +195,7 @@ def main(argv: list[str] | None = None) -> None:
         "subsets": args.subsets,
         "extras": args.extras,
         "extra_distance": list(args.extra_distance),
+        "stick_prob": args.stick_prob,
         "synthetic_val_accuracy": round(acc, 5),
         "synthetic_val_marker_accuracy": round(acc_m, 5),
         "val_frames": sum(len(b.points) for b in val),
