@@ -82,6 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--width", type=int, default=96)
     p.add_argument("--layers", type=int, default=4)
     p.add_argument("--heads", type=int, default=4)
+    p.add_argument("--centre", choices=("median", "midrange"), default="median")
     p.add_argument("--identities", type=int, default=1024)
     p.add_argument("--extras", type=int, default=0, help="up to this many markers of another protocol per frame")
     p.add_argument("--stick-prob", type=float, default=0.5, help="fraction of samples with wrist bars")
@@ -110,7 +111,14 @@ def main(argv: list[str] | None = None) -> None:
     val = [val_data.sample(min(256, args.val_frames), val_gen) for _ in range(max(1, args.val_frames // 256))]
 
     torch.manual_seed(args.seed)
-    model = Labeler(len(layout), label_names=layout.labels, width=args.width, layers=args.layers, heads=args.heads)
+    model = Labeler(
+        len(layout),
+        label_names=layout.labels,
+        width=args.width,
+        layers=args.layers,
+        heads=args.heads,
+        centre=args.centre,
+    )
     if args.init and args.init.endswith("checkpoint.pt"):  # another run's training checkpoint
         model.load_state_dict(torch.load(args.init, weights_only=True)["model"])
     elif args.init:

@@ -4,7 +4,8 @@ One frame is an unordered set of N points (real markers, ghost points and paddin
 see :class:`~unibody.mocap.corrupt.MocapBatch`); the labeler gives each real point one of L
 marker labels or the null label L:
 
-1. centre each frame on the per-axis median of its real points (paper §4.1);
+1. centre each frame on the per-axis median of its real points (paper §4.1) or on the
+   middle of their 5-95 % range (``centre="midrange"``);
 2. per-point features: a pointwise MLP, 3 -> width;
 3. ``layers`` pre-LayerNorm transformer blocks: multi-head self-attention over the frame's
    real points (padding never serves as a key) and a feed-forward layer, both residual;
@@ -92,6 +93,9 @@ class Labeler(nn.Module):
         layers: number of self-attention blocks.
         heads: attention heads; must divide ``width``.
         sinkhorn_iters: Sinkhorn iterations (paper: 35).
+        centre: how a frame is centred: ``"median"`` of its real points per axis (paper §4.1)
+            or ``"midrange"``, the middle of their 5-95 % range per axis (robust to many extra
+            markers crowded on one part of the body, e.g. pyCGM's foot markers).
 
     Attributes:
         meta: free-form training record (command, seed, steps, metrics), saved with the weights.
@@ -106,6 +110,7 @@ class Labeler(nn.Module):
         layers: int = 4,
         heads: int = 4,
         sinkhorn_iters: int = 35,
+        centre: str = "median",
     ) -> None:
         super().__init__()
         if num_labels < 1:
@@ -114,12 +119,14 @@ class Labeler(nn.Module):
             raise ValueError(f"width/heads: expected width divisible by heads, got width={width}, heads={heads}")
         if sinkhorn_iters < 1:
             raise ValueError(f"sinkhorn_iters: expected >= 1, got {sinkhorn_iters}")
+        if centre not in ("median", "midrange"):
+            raise ValueError(f"centre: expected 'median' or 'midrange', got {centre!r}")
         names = tuple(str(i) for i in range(num_labels)) if label_names is None else tuple(label_names)
         if len(names) != num_labels:
             raise ValueError(f"label_names: expected {num_labels} names, got {len(names)}")
         self.label_names = names
         self.config = {"num_labels": num_labels, "width": width, "layers": layers, "heads": heads,
-                       "sinkhorn_iters": sinkhorn_iters}  # fmt: skip
+                       "sinkhorn_iters": sinkhorn_iters, "centre": centre}  # fmt: skip
         self.meta: dict = {}
         self.embed = nn.Sequential(nn.Linear(3, width), nn.ReLU(), nn.Linear(width, width))
         self.blocks = nn.ModuleList(_Block(width, heads) for _ in range(layers))
@@ -132,7 +139,12 @@ class Labeler(nn.Module):
 
     def scores(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Point-to-label scores (B, N, L) before Sinkhorn; same arguments as :meth:`forward`."""
-        centre = torch.nanmedian(torch.where(mask[..., None], points, torch.nan), dim=1).values  # (B, 3)
+        real = torch.where(mask[..., None], points, torch.nan)
+        if self.config["centre"] == "median":
+            centre = torch.nanmedian(real, dim=1).values  # (B, 3)
+        else:  # middle of the 5-95 % range: a crowd of extra markers on the feet does not move it
+            q = torch.nanquantile(real, torch.tensor([0.05, 0.95], dtype=real.dtype, device=real.device), dim=1)
+            centre = 0.5 * (q[0] + q[1])
         centre = torch.nan_to_num(centre)  # a frame without real points
         x = self.embed(torch.where(mask[..., None], points - centre[:, None], 0.0))
         # A frame without real points attends to its (ignored) padding rather than to nothing (NaN).
