@@ -223,3 +223,22 @@ def test_training_script_resumes_bit_identically(tmp_path):
     mod.main(_args(tmp_path / "c", 4))
     c = Labeler.load(tmp_path / "c" / "labeler.pt")
     assert not torch.equal(c.bin_score, a.bin_score)
+
+
+def test_midrange_centre_ignores_a_crowd_of_extra_points(tmp_path):
+    """The median follows a crowd of extra points (pyCGM's foot markers); the middle of the 5-95 % range
+    stays with the body; the choice is saved with the weights."""
+    torch.manual_seed(0)
+    body = torch.rand(1, 40, 3) * torch.tensor([0.5, 1.7, 0.3])  # 40 points spread over a body's box
+    crowd = torch.rand(1, 30, 3) * torch.tensor([0.5, 0.1, 0.3])  # 30 more near the floor
+    pts, mask = torch.cat([body, crowd], dim=1), torch.ones(1, 70, dtype=torch.bool)
+    median, midrange = Labeler(5), Labeler(5, centre="midrange")
+    assert abs(float(median.centres(body, mask[:, :40])[0, 1] - median.centres(pts, mask)[0, 1])) > 0.3
+    assert abs(float(midrange.centres(body, mask[:, :40])[0, 1] - midrange.centres(pts, mask)[0, 1])) < 0.1
+    padded = torch.cat([pts, torch.full((1, 5, 3), 99.0)], dim=1)  # padding never counts
+    assert torch.equal(midrange.centres(padded, torch.cat([mask, torch.zeros(1, 5, dtype=torch.bool)], 1)),
+                       midrange.centres(pts, mask))  # fmt: skip
+    midrange.save(tmp_path / "m.pt")
+    assert Labeler.load(tmp_path / "m.pt").config["centre"] == "midrange"
+    with pytest.raises(ValueError, match="centre"):
+        Labeler(5, centre="mean")

@@ -137,15 +137,19 @@ class Labeler(nn.Module):
     def num_labels(self) -> int:
         return self.config["num_labels"]
 
-    def scores(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """Point-to-label scores (B, N, L) before Sinkhorn; same arguments as :meth:`forward`."""
+    def centres(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """(B, 3) the point each frame is centred on (zeros for a frame without real points)."""
         real = torch.where(mask[..., None], points, torch.nan)
         if self.config["centre"] == "median":
-            centre = torch.nanmedian(real, dim=1).values  # (B, 3)
+            centre = torch.nanmedian(real, dim=1).values
         else:  # middle of the 5-95 % range: a crowd of extra markers on the feet does not move it
             q = torch.nanquantile(real, torch.tensor([0.05, 0.95], dtype=real.dtype, device=real.device), dim=1)
             centre = 0.5 * (q[0] + q[1])
-        centre = torch.nan_to_num(centre)  # a frame without real points
+        return torch.nan_to_num(centre)
+
+    def scores(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Point-to-label scores (B, N, L) before Sinkhorn; same arguments as :meth:`forward`."""
+        centre = self.centres(points, mask)
         x = self.embed(torch.where(mask[..., None], points - centre[:, None], 0.0))
         # A frame without real points attends to its (ignored) padding rather than to nothing (NaN).
         key_ok = mask | ~mask.any(dim=1, keepdim=True)
