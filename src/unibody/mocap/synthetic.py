@@ -136,14 +136,12 @@ class SyntheticMocap:
         coeffs = config.shape_scale * torch.randn(config.identities, config.shape_components, generator=gen)
         # Candidate vertices of each marker: within its jitter radius of its vertex on the mean rest mesh.
         with torch.no_grad():
-            mean = layer.identity(torch.zeros(1, config.shape_components))
-            normal = vertex_normals(mean, layer.faces)[0]
-            mean = mean[0]
+            rest0 = layer.prepare_identity(torch.zeros(1, config.shape_components))  # the mean body
+            mean, normal = rest0.rest_vertices[0], vertex_normals(rest0.rest_vertices, layer.faces)[0]
+            joints = dict(zip(layer.joint_names, rest0.rest_joints[0], strict=True))
             d = torch.cdist(mean[layout.vertices], mean)  # (M, V)
             same_side = normal[layout.vertices] @ normal.T >= config.jitter_cos
             near = (d <= self.jitter_radii()[:, None]) & same_side
-            rest0 = layer.prepare_identity(torch.zeros(1, config.shape_components))
-            joints = dict(zip(layer.joint_names, rest0.rest_joints[0], strict=True))
             for i, label in enumerate(layout.labels):
                 seg = [x for x in config.segments if label.endswith(x[0])]
                 if not seg:
