@@ -83,6 +83,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--layers", type=int, default=4)
     p.add_argument("--heads", type=int, default=4)
     p.add_argument("--centre", choices=("median", "midrange"), default="median")
+    p.add_argument("--refine", type=int, default=2, help="re-centring passes when labelling (not in training)")
     p.add_argument("--identities", type=int, default=1024)
     p.add_argument("--extras", type=int, default=0, help="up to this many markers of another protocol per frame")
     p.add_argument("--stick-prob", type=float, default=0.5, help="fraction of samples with wrist bars")
@@ -118,6 +119,7 @@ def main(argv: list[str] | None = None) -> None:
         layers=args.layers,
         heads=args.heads,
         centre=args.centre,
+        refine=args.refine,
     )
     if args.init and args.init.endswith("checkpoint.pt"):  # another run's training checkpoint
         model.load_state_dict(torch.load(args.init, weights_only=True)["model"])
@@ -160,7 +162,7 @@ def main(argv: list[str] | None = None) -> None:
         for group in opt.param_groups:
             group["lr"] = lr_at(step)
         batch = train_data.sample(args.batch, gen)
-        loss = labeling_loss(model(batch.points, batch.mask), batch)
+        loss = labeling_loss(model(batch.points, batch.mask, refine=0), batch)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite loss at step {step}")
         opt.zero_grad(set_to_none=True)

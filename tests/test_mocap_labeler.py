@@ -242,3 +242,7 @@ def test_midrange_centre_ignores_a_crowd_of_extra_points(tmp_path):
     assert Labeler.load(tmp_path / "m.pt").config["centre"] == "midrange"
     with pytest.raises(ValueError, match="centre"):
         Labeler(5, centre="mean")
+    Labeler(5, refine=2).save(tmp_path / "r.pt")
+    assert Labeler.load(tmp_path / "r.pt").config["refine"] == 2
+    with pytest.raises(ValueError, match="refine"):
+        Labeler(5, refine=-1)

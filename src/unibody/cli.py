@@ -254,7 +254,8 @@ def run_mocap_solve(src: Path, out: Path, layout_name: str, up: str, png: Path |
     save_motion(out, result.to_motion(seq.rate))
     r = result.residual[torch.isfinite(result.residual)] * 1000
     print(
-        f"solved {int(result.solved.sum())}/{seq.num_frames} frames in {dt:.1f} s ({seq.num_frames / dt:,.0f} frames/s), "
+        f"solved {int(result.solved.sum())}/{seq.num_frames} frames in {dt:.1f} s "
+        f"({seq.num_frames / dt:,.0f} frames/s), "
         f"marker residual mean {float(r.mean()):.1f} mm; wrote {out} (replay: unibody pose {out} --out meshes.npz)"
     )
     if png is not None:

@@ -94,10 +94,7 @@ class SkeletonTransfer(nn.Module):
         """
         b, v, _ = vertices.shape
         op = _csr(self.op_crow, self.op_col, self.op_val, (5 * self.num_joints, v))
-        out = [
-            (op @ x.permute(1, 0, 2).reshape(v, -1)).view(-1, x.shape[0], 3)
-            for x in vertices.split(_MESH_CHUNK)
-        ]
+        out = [(op @ x.permute(1, 0, 2).reshape(v, -1)).view(-1, x.shape[0], 3) for x in vertices.split(_MESH_CHUNK)]
         return torch.cat(out, dim=1).transpose(0, 1) if len(out) > 1 else out[0].transpose(0, 1)
 
     def joint_positions(self, vertices: torch.Tensor) -> torch.Tensor:

@@ -25,7 +25,16 @@ from .mhr import MHRIdentity
 from .pca import PCAIdentity
 from .smpl import SMPLIdentity
 
-__all__ = ["AnnyIdentity", "GarmentIdentity", "MHRIdentity", "PCAIdentity", "PHENOTYPES", "SMPLIdentity", "BACKENDS", "create"]
+__all__ = [
+    "AnnyIdentity",
+    "GarmentIdentity",
+    "MHRIdentity",
+    "PCAIdentity",
+    "PHENOTYPES",
+    "SMPLIdentity",
+    "BACKENDS",
+    "create",
+]
 
 BACKENDS: tuple[str, ...] = ("anny", "pca", "smpl", "mhr", "garment")
 # Where a backend's user files are found when no path is given.
@@ -48,7 +57,9 @@ def create(name: str, *, path: str | Path | None = None) -> nn.Module:
         raise ValueError(f"identity backend: unknown name {name!r}; choose one of {', '.join(BACKENDS)}")
     path = path if path is not None else os.environ.get(ENV_VARS[name])
     if path is None:
-        raise ValueError(f"identity backend {name!r}: needs the user's model files; pass a path or set {ENV_VARS[name]}")
+        raise ValueError(
+            f"identity backend {name!r}: needs the user's model files; pass a path or set {ENV_VARS[name]}"
+        )
     if name == "smpl":
         return SMPLIdentity.from_file(path)
     return (MHRIdentity if name == "mhr" else GarmentIdentity).from_files(path)

@@ -96,6 +96,10 @@ class Labeler(nn.Module):
         centre: how a frame is centred: ``"median"`` of its real points per axis (paper §4.1)
             or ``"midrange"``, the middle of their 5-95 % range per axis (robust to many extra
             markers crowded on one part of the body, e.g. pyCGM's foot markers).
+        refine: re-centring passes when labelling (training uses none): the first pass centres
+            each frame on the midrange of all its points, each further pass on the ``centre``
+            rule applied to the points the last pass labelled as markers. Extra markers or
+            ghosts crowded on one part of the body then no longer move the frame's centre.
 
     Attributes:
         meta: free-form training record (command, seed, steps, metrics), saved with the weights.
@@ -111,6 +115,7 @@ class Labeler(nn.Module):
         heads: int = 4,
         sinkhorn_iters: int = 35,
         centre: str = "median",
+        refine: int = 0,
     ) -> None:
         super().__init__()
         if num_labels < 1:
@@ -121,12 +126,14 @@ class Labeler(nn.Module):
             raise ValueError(f"sinkhorn_iters: expected >= 1, got {sinkhorn_iters}")
         if centre not in ("median", "midrange"):
             raise ValueError(f"centre: expected 'median' or 'midrange', got {centre!r}")
+        if refine < 0:
+            raise ValueError(f"refine: expected >= 0, got {refine}")
         names = tuple(str(i) for i in range(num_labels)) if label_names is None else tuple(label_names)
         if len(names) != num_labels:
             raise ValueError(f"label_names: expected {num_labels} names, got {len(names)}")
         self.label_names = names
         self.config = {"num_labels": num_labels, "width": width, "layers": layers, "heads": heads,
-                       "sinkhorn_iters": sinkhorn_iters, "centre": centre}  # fmt: skip
+                       "sinkhorn_iters": sinkhorn_iters, "centre": centre, "refine": refine}  # fmt: skip
         self.meta: dict = {}
         self.embed = nn.Sequential(nn.Linear(3, width), nn.ReLU(), nn.Linear(width, width))
         self.blocks = nn.ModuleList(_Block(width, heads) for _ in range(layers))
@@ -137,19 +144,25 @@ class Labeler(nn.Module):
     def num_labels(self) -> int:
         return self.config["num_labels"]
 
-    def centres(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """(B, 3) the point each frame is centred on (zeros for a frame without real points)."""
+    def centres(self, points: torch.Tensor, mask: torch.Tensor, rule: str | None = None) -> torch.Tensor:
+        """(B, 3) the point each frame is centred on (zeros for a frame without real points).
+
+        ``rule`` ("median" or "midrange") overrides the model's ``centre``.
+        """
         real = torch.where(mask[..., None], points, torch.nan)
-        if self.config["centre"] == "median":
+        if (rule or self.config["centre"]) == "median":
             centre = torch.nanmedian(real, dim=1).values
         else:  # middle of the 5-95 % range: a crowd of extra markers on the feet does not move it
             q = torch.nanquantile(real, torch.tensor([0.05, 0.95], dtype=real.dtype, device=real.device), dim=1)
             centre = 0.5 * (q[0] + q[1])
         return torch.nan_to_num(centre)
 
-    def scores(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """Point-to-label scores (B, N, L) before Sinkhorn; same arguments as :meth:`forward`."""
-        centre = self.centres(points, mask)
+    def scores(self, points: torch.Tensor, mask: torch.Tensor, centre: torch.Tensor | None = None) -> torch.Tensor:
+        """Point-to-label scores (B, N, L) before Sinkhorn; same arguments as :meth:`forward`.
+
+        ``centre`` (B, 3) overrides the frames' centres (default :meth:`centres`).
+        """
+        centre = self.centres(points, mask) if centre is None else centre
         x = self.embed(torch.where(mask[..., None], points - centre[:, None], 0.0))
         # A frame without real points attends to its (ignored) padding rather than to nothing (NaN).
         key_ok = mask | ~mask.any(dim=1, keepdim=True)
@@ -158,12 +171,13 @@ class Labeler(nn.Module):
             x = block(x, key_bias)
         return self.head(x)
 
-    def forward(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    def forward(self, points: torch.Tensor, mask: torch.Tensor, *, refine: int | None = None) -> torch.Tensor:
         """Log assignment plan of each frame.
 
         Args:
             points: (B, N, 3) m, unibody frame (Y up); padding slots are ignored (may hold anything).
             mask: (B, N) bool, True for real points (markers and ghosts).
+            refine: re-centring passes (default: the model's ``refine``; training uses 0).
 
         Returns:
             (B, N+1, L+1) log plan (see :func:`~unibody.mocap.sinkhorn.log_sinkhorn`): row i,
@@ -180,7 +194,16 @@ class Labeler(nn.Module):
             raise TypeError(f"mask: expected a bool tensor, got {mask.dtype}")
         check_like(points, self.bin_score, "points", owner="the labeler")
         check_finite(torch.where(mask[..., None], points, 0.0), "points")
-        return log_sinkhorn(self.scores(points, mask), self.bin_score, mask, self.config["sinkhorn_iters"])
+        refine = self.config["refine"] if refine is None else refine
+        iters, null = self.config["sinkhorn_iters"], self.num_labels
+        centre = self.centres(points, mask, "midrange" if refine else None)
+        for _ in range(refine):
+            with torch.no_grad():
+                plan = log_sinkhorn(self.scores(points, mask, centre), self.bin_score, mask, iters)
+                marker = mask & (plan[:, :-1].argmax(dim=2) != null)
+                marker = torch.where(marker.sum(dim=1, keepdim=True) >= 3, marker, mask)
+                centre = self.centres(points, marker)
+        return log_sinkhorn(self.scores(points, mask, centre), self.bin_score, mask, iters)
 
     def save(self, path: str | Path, meta: dict | None = None) -> None:
         """Write weights, configuration, label names and ``meta`` (default :attr:`meta`) to one file.
