@@ -111,13 +111,30 @@ def test_synthetic_markers_match_full_mesh(synthetic):
     g = torch.Generator().manual_seed(5)
     ident = torch.randint(8, (4,), generator=g)
     pose = sample_poses(4, g, **cfg.pose)
-    coeffs = torch.randn(8, 16, generator=torch.Generator().manual_seed(0))
-    out = syn0.layer(coeffs[ident], pose)
+    out = syn0.layer(syn0.coefficients[ident], pose)
     ref = place_markers(out.vertices, syn0.layer.faces, syn0.layout.vertices, torch.zeros(len(syn0.layout)))
     assert (ref - m).abs().max() < 1e-4
     # with a skin offset the markers sit that far from their vertex, off the skin
     m1 = syn.markers(4, torch.Generator().manual_seed(5))
     assert torch.allclose((m1 - m).norm(dim=-1), torch.full((4, 39), 0.01), atol=1e-4)
+
+
+def test_synthetic_statures_follow_the_config():
+    """Three quarters of the pool get a stature uniform in the adult range; the rest keep the
+    N(0, 1) draw of the PCA, children and giants included."""
+    syn = SyntheticMocap(MarkerLayout.load("cmu41"), SyntheticConfig(identities=400, pool_seed=3))
+    with torch.no_grad():
+        y = torch.cat([syn.layer.prepare_identity(c).rest_vertices[..., 1] for c in syn.coefficients.split(100)])
+    h = y.amax(1) - y.amin(1)
+    adult = ((h > 1.48) & (h < 1.97)).float().mean()
+    assert 0.78 < adult < 0.92, adult  # 0.75 redrawn + the N(0, 1) draws that land there (~ 0.35 of 0.25)
+    assert (h < 1.2).float().mean() > 0.03 and (h > 2.05).float().mean() > 0.01  # the others still span ages
+    inside = h[(h > 1.48) & (h < 1.97)]
+    assert abs(float(inside.mean()) - 1.725) < 0.03, inside.mean()  # uniform over the range
+    free = SyntheticMocap(MarkerLayout.load("cmu41"), SyntheticConfig(identities=400, pool_seed=3, stature=None))
+    assert torch.equal(free.coefficients, 1.0 * torch.randn(400, 16, generator=torch.Generator().manual_seed(3)))
+    with pytest.raises(ValueError, match="stature"):
+        SyntheticMocap(MarkerLayout.load("cmu41"), SyntheticConfig(identities=4, stature=(1.9, 1.5)))
 
 
 def test_synthetic_jitter_and_subsets():

@@ -1,8 +1,9 @@
 """Synthetic optical mocap for training the labeler (paper 003 §4.4).
 
 Bodies come from the native PCA shape space (all sizes and ages it spans, children
-included), poses from :func:`unibody.poses.sample_poses` (uniform heading, a fraction
-tumbling), markers from a :class:`~unibody.mocap.layout.MarkerLayout`. Per sample:
+included; by default three quarters of them get an adult stature, as in most mocap), poses
+from :func:`unibody.poses.sample_poses` (uniform heading, a fraction tumbling), markers
+from a :class:`~unibody.mocap.layout.MarkerLayout`. Per sample:
 
 - placement jitter: each marker moves to a random vertex near its layout vertex on the
   rest mesh, on the same side of the body (rest normals within ``jitter_cos``). The paper
@@ -62,6 +63,11 @@ class SyntheticConfig:
     Attributes:
         identities: size of the pool of PCA bodies drawn once from ``pool_seed``.
         shape_components: PCA coefficients sampled ~ N(0, shape_scale^2), the rest zero.
+        stature, stature_prob: m, a fraction ``stature_prob`` of the pool has its first PCA
+            coefficient (stature: its correlation with the rest height is 0.998) redrawn so
+            that the mean body would be uniformly ``stature`` tall. Real mocap subjects are
+            mostly adults; the N(0, 1) draw alone puts a quarter of the bodies under 1.18 m
+            and a tenth over 2.03 m. ``None`` keeps the N(0, 1) draw for all.
         jitter_radius: m, marker placement jitter on the rest mesh (markers in neither
             ``segments`` nor ``loose``).
         segments: ``(label suffix, joint, child joint, lo, hi)``: markers anywhere along a limb
@@ -93,6 +99,8 @@ class SyntheticConfig:
     pool_seed: int = 0
     shape_components: int = 16
     shape_scale: float = 1.0
+    stature: tuple[float, float] | None = (1.5, 1.95)
+    stature_prob: float = 0.75
     jitter_radius: float = 0.025
     segments: tuple[tuple[str, str, str, float, float], ...] = (
         ("THI", "Leg", "Shin", 0.15, 0.85),
@@ -134,6 +142,16 @@ class SyntheticMocap:
         self.layer = layer
         gen = torch.Generator().manual_seed(config.pool_seed)
         coeffs = config.shape_scale * torch.randn(config.identities, config.shape_components, generator=gen)
+        if config.stature is not None:
+            lo, hi = config.stature
+            if not 0 < lo <= hi or not 0 <= config.stature_prob <= 1:
+                raise ValueError(f"stature, stature_prob: expected 0 < lo <= hi and a probability, got {config}")
+            adult = torch.rand(config.identities, generator=gen) < config.stature_prob
+            tall = lo + (hi - lo) * torch.rand(config.identities, generator=gen)
+            coeffs[:, 0] = torch.where(
+                adult, self._stature_coefficient(layer, tall, config.shape_components), coeffs[:, 0]
+            )
+        self.coefficients = coeffs  # (identities, shape_components): the pool's PCA bodies
         # Candidate vertices of each marker: within its jitter radius of its vertex on the mean rest mesh.
         with torch.no_grad():
             rest0 = layer.prepare_identity(torch.zeros(1, config.shape_components))  # the mean body
@@ -193,6 +211,16 @@ class SyntheticMocap:
         self.subset_masks = [
             torch.tensor([x in set(s) for x in layout.labels], dtype=torch.bool) for s in config.subsets
         ]
+
+    @staticmethod
+    def _stature_coefficient(layer: BodyLayer, height: torch.Tensor, components: int) -> torch.Tensor:
+        """First PCA coefficient that makes the mean body ``height`` m tall (linear in it)."""
+        c = torch.zeros(2, components)
+        c[1, 0] = 1.0
+        with torch.no_grad():
+            y = layer.prepare_identity(c).rest_vertices[..., 1]
+        h = y.amax(1) - y.amin(1)
+        return (height - h[0]) / (h[1] - h[0])
 
     def jitter_radii(self) -> torch.Tensor:
         """(M,) m, the placement jitter radius of each layout marker (0 for ``segments`` markers)."""
