@@ -43,6 +43,7 @@ def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, id
     cfg = SyntheticConfig(
         identities=identities, pool_seed=pool_seed, subsets=subs, extras=args.extras,
         extra_distance=(args.extra_distance[0], args.extra_distance[1]), stick_prob=args.stick_prob,
+        stature_prob=args.stature_prob,
     )  # fmt: skip
     return SyntheticMocap(layout, cfg)
 
@@ -83,6 +84,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--layers", type=int, default=4)
     p.add_argument("--heads", type=int, default=4)
     p.add_argument("--centre", choices=("median", "midrange"), default="median")
+    p.add_argument("--stature-prob", type=float, default=0.75, help="fraction of bodies with an adult stature")
     p.add_argument("--refine", type=int, default=2, help="re-centring passes when labelling (not in training)")
     p.add_argument("--identities", type=int, default=1024)
     p.add_argument("--extras", type=int, default=0, help="up to this many markers of another protocol per frame")
