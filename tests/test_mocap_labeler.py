@@ -246,3 +246,5 @@ def test_midrange_centre_ignores_a_crowd_of_extra_points(tmp_path):
     assert Labeler.load(tmp_path / "r.pt").config["refine"] == 2
     with pytest.raises(ValueError, match="refine"):
         Labeler(5, refine=-1)
+    with pytest.raises(ValueError, match="refine"):
+        midrange(pts, mask, refine=-1)

@@ -195,6 +195,8 @@ class Labeler(nn.Module):
         check_like(points, self.bin_score, "points", owner="the labeler")
         check_finite(torch.where(mask[..., None], points, 0.0), "points")
         refine = self.config["refine"] if refine is None else refine
+        if refine < 0:
+            raise ValueError(f"refine: expected >= 0, got {refine}")
         iters, null = self.config["sinkhorn_iters"], self.num_labels
         centre = self.centres(points, mask, "midrange" if refine else None)
         for _ in range(refine):

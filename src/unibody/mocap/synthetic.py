@@ -142,21 +142,24 @@ class SyntheticMocap:
         self.layer = layer
         gen = torch.Generator().manual_seed(config.pool_seed)
         coeffs = config.shape_scale * torch.randn(config.identities, config.shape_components, generator=gen)
+        with torch.no_grad():  # the mean body, and one unit along the first (stature) component
+            probe = torch.zeros(2, config.shape_components)
+            probe[1, 0] = 1.0
+            probe_body = layer.prepare_identity(probe)
         if config.stature is not None:
             lo, hi = config.stature
             if not 0 < lo <= hi or not 0 <= config.stature_prob <= 1:
                 raise ValueError(f"stature, stature_prob: expected 0 < lo <= hi and a probability, got {config}")
             adult = torch.rand(config.identities, generator=gen) < config.stature_prob
             tall = lo + (hi - lo) * torch.rand(config.identities, generator=gen)
-            coeffs[:, 0] = torch.where(
-                adult, self._stature_coefficient(layer, tall, config.shape_components), coeffs[:, 0]
-            )
+            y = probe_body.rest_vertices[..., 1]
+            h = y.amax(1) - y.amin(1)  # stature is linear in the coefficient
+            coeffs[:, 0] = torch.where(adult, (tall - h[0]) / (h[1] - h[0]), coeffs[:, 0])
         self.coefficients = coeffs  # (identities, shape_components): the pool's PCA bodies
         # Candidate vertices of each marker: within its jitter radius of its vertex on the mean rest mesh.
         with torch.no_grad():
-            rest0 = layer.prepare_identity(torch.zeros(1, config.shape_components))  # the mean body
-            mean, normal = rest0.rest_vertices[0], vertex_normals(rest0.rest_vertices, layer.faces)[0]
-            joints = dict(zip(layer.joint_names, rest0.rest_joints[0], strict=True))
+            mean, normal = probe_body.rest_vertices[0], vertex_normals(probe_body.rest_vertices[:1], layer.faces)[0]
+            joints = dict(zip(layer.joint_names, probe_body.rest_joints[0], strict=True))
             d = torch.cdist(mean[layout.vertices], mean)  # (M, V)
             same_side = normal[layout.vertices] @ normal.T >= config.jitter_cos
             near = (d <= self.jitter_radii()[:, None]) & same_side
@@ -211,16 +214,6 @@ class SyntheticMocap:
         self.subset_masks = [
             torch.tensor([x in set(s) for x in layout.labels], dtype=torch.bool) for s in config.subsets
         ]
-
-    @staticmethod
-    def _stature_coefficient(layer: BodyLayer, height: torch.Tensor, components: int) -> torch.Tensor:
-        """First PCA coefficient that makes the mean body ``height`` m tall (linear in it)."""
-        c = torch.zeros(2, components)
-        c[1, 0] = 1.0
-        with torch.no_grad():
-            y = layer.prepare_identity(c).rest_vertices[..., 1]
-        h = y.amax(1) - y.amin(1)
-        return (height - h[0]) / (h[1] - h[0])
 
     def jitter_radii(self) -> torch.Tensor:
         """(M,) m, the placement jitter radius of each layout marker (0 for ``segments`` markers)."""
