@@ -4,10 +4,14 @@
     OMP_NUM_THREADS=1 python scripts/train_labeler.py --layout pig39 --subsets pig35 --extras 40 \
         --out build/labeler_pig39 --threads 1
 
-The shipped weights were trained in three rounds, each starting from the last (``--init``);
-the exact commands and the revision of each round are in each weights file's
-``meta["recipe"]`` and in benchmarks/README.md. Use ``--threads 1``: the synthetic
-sampler's many small ops run several times slower on two threads.
+The shipped weights were trained in several runs (cmu41: seven, pig39: six), each starting
+from the last (``--init``); the exact commands, with the revision of each run, are in each
+weights file's ``meta["recipe"]`` and in benchmarks/README.md:
+
+    python -c "from unibody.mocap.pipeline import load_labeler; print(*load_labeler('cmu41').meta['recipe'], sep='\\n')"
+
+Two runs side by side with ``--threads 1`` each use a 2-core machine best (about 2 steps/s
+each); one run alone goes about 1.7x faster with ``--threads 2``.
 
 Data is drawn on the fly from :class:`unibody.mocap.synthetic.SyntheticMocap` (a pool of
 PCA bodies from ``--pool-seed``, seeded poses, jitter, noise, occlusions, ghosts). Validation
