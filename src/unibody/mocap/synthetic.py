@@ -75,7 +75,9 @@ class SyntheticConfig:
             vertices whose projection on the bone (joint names without their side; the
             marker's side is added where such a joint exists) falls in
             [lo, hi] of its length, at the layout vertex's distance from the bone within
-            ``segment_band`` m, on the same side (``jitter_cos``).
+            ``segment_band`` m, on the same side (``jitter_cos``). The forefoot markers slide
+            along the foot too (labs put TOE anywhere from the second metatarsal head to the
+            toes, MT5 on the shaft or the head), t > 1 reaching past the toe joint.
         loose: ``(label suffixes, radius in m)`` groups with their own jitter radius; a label
             belongs to the first group with a suffix it ends with.
         jitter_cos: a candidate vertex's rest normal has a cosine of at least this with the
@@ -108,6 +110,8 @@ class SyntheticConfig:
         ("SHN", "Shin", "Foot", 0.15, 0.85),
         ("UPA", "Arm", "ForeArm", 0.2, 0.8),
         ("FRM", "ForeArm", "Hand", 0.2, 0.8),
+        ("TOE", "Foot", "ToeBase", 0.8, 1.3),
+        ("MT5", "Foot", "ToeBase", 0.55, 1.05),
     )
     segment_band: float = 0.03
     loose: tuple[tuple[tuple[str, ...], float], ...] = (
