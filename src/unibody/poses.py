@@ -88,6 +88,7 @@ def sample_poses(
     min_amplitude: float = 0.2,
     tilt: float = 0.3,
     tumble: float = 0.1,
+    together: float = 0.0,
     fingers: bool = True,
     ranges: dict[str, tuple[tuple[float, float, float], ...]] | None = None,
     dtype: torch.dtype = torch.float32,
@@ -100,6 +101,10 @@ def sample_poses(
         min_amplitude: lower end of the per-sample amplitude in [0, 1] (see the module docstring).
         tilt: radians, the largest pitch/roll of the Hips for upright samples.
         tumble: fraction of samples with a uniformly random Hips orientation.
+        together: fraction of samples with the legs together: each hip adducted 0-0.15 rad
+            (about Z), the right hip and knee flexed as the left ones +-0.15 rad (about X).
+            Independent draws seldom bring the feet within 20 cm of each other; people stand,
+            squat and lie with their feet together all the time.
         fingers: whether fingers curl (else they stay straight, as in the T-pose).
         ranges: entries that replace those of :data:`JOINT_RANGES` (same format, left-side names).
         dtype: float32 or float64.
@@ -113,6 +118,8 @@ def sample_poses(
         raise ValueError(f"min_amplitude: expected a value in [0, 1], got {min_amplitude}")
     if not 0.0 <= tumble <= 1.0:
         raise ValueError(f"tumble: expected a fraction in [0, 1], got {tumble}")
+    if not 0.0 <= together <= 1.0:
+        raise ValueError(f"together: expected a fraction in [0, 1], got {together}")
     index = {name: i - 1 for i, name in enumerate(JOINT_NAMES)}  # pose rows are joints 1..77
     pose = torch.zeros(n, len(JOINT_NAMES) - 1, 3, dtype=dtype)
     amp = min_amplitude + (1.0 - min_amplitude) * torch.rand(n, 1, generator=generator, dtype=dtype)
@@ -155,4 +162,15 @@ def sample_poses(
     if bool(tumbling.any()):
         root[tumbling] = _random_rotations(int(tumbling.sum()), generator, dtype)
     pose[:, index["Hips"]] = matrix_to_axis_angle(root)
+    if together > 0:  # drawn last: the stream of together=0 is unchanged
+        close = torch.rand(n, generator=generator, dtype=dtype)[:, None] < together
+        u = 2 * torch.rand(n, 4, generator=generator, dtype=dtype) - 1
+        ll, rl, ls, rs = (index[x] for x in ("LeftLeg", "RightLeg", "LeftShin", "RightShin"))
+        adduct = 0.075 + 0.075 * u[:, :2]  # 0-0.15 rad toward the midline, each leg
+        pose[:, ll, 2] = torch.where(close[:, 0], -adduct[:, 0], pose[:, ll, 2])
+        pose[:, rl, 2] = torch.where(close[:, 0], adduct[:, 1], pose[:, rl, 2])
+        for left, right, k, name in ((ll, rl, 2, "LeftLeg"), (ls, rs, 3, "LeftShin")):  # flex alike, in range
+            lo, hi = table[name][0][0], table[name][1][0]
+            alike = (pose[:, left, 0] + 0.15 * u[:, k]).clamp(lo, hi)
+            pose[:, right, 0] = torch.where(close[:, 0], alike, pose[:, right, 0])
     return pose
