@@ -209,6 +209,20 @@ def test_sample_poses_legs_together():
         sample_poses(2, g(), together=-0.1)
 
 
+def test_sample_poses_arms_alike():
+    """arms_alike=1 mirrors the left arm onto the right (+-0.15 rad); the left side is untouched."""
+    g = torch.Generator
+    a = sample_poses(256, g().manual_seed(5), together=0.5)
+    b = sample_poses(256, g().manual_seed(5), together=0.5, arms_alike=1.0)
+    for name in ("Shoulder", "Arm", "ForeArm", "Hand"):
+        left, right = joint_index("Left" + name) - 1, joint_index("Right" + name) - 1
+        assert torch.equal(a[:, left], b[:, left])
+        mirrored = b[:, left] * torch.tensor([1.0, -1.0, -1.0])
+        assert (b[:, right] - mirrored).abs().max() <= 0.15 + 1e-6 < (a[:, right] - mirrored).abs().max()
+    with pytest.raises(ValueError, match="arms_alike"):
+        sample_poses(2, g(), arms_alike=2.0)
+
+
 def test_sample_poses_range_overrides():
     """A ranges entry replaces that joint's range; other joints keep theirs; unknown joints fail."""
     wide = {"Head": ((-0.2, -1.0, -0.15), (0.3, 1.0, 0.15), (0.0, 0.0, 0.0))}
