@@ -4,9 +4,9 @@
     OMP_NUM_THREADS=1 python scripts/train_labeler.py --layout pig39 --subsets pig35 --extras 40 \
         --out build/labeler_pig39 --threads 1
 
-The shipped weights were trained in several runs (cmu41: seven, pig39: six), each starting
-from the last (``--init``); the exact commands, with the revision of each run, are in each
-weights file's ``meta["recipe"]`` and in benchmarks/README.md:
+The shipped weights were trained in several runs (cmu41: nine, pig39: seven), each starting
+from the last (``--init``) as the synthetic data improved; the exact commands, with the
+revision of each run, are in each weights file's ``meta["recipe"]`` and in benchmarks/README.md:
 
     python -c "from unibody.mocap.pipeline import load_labeler; print(*load_labeler('cmu41').meta['recipe'], sep='\\n')"
 

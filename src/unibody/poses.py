@@ -10,7 +10,9 @@ left side; the right side is mirrored), then pulls it toward a relaxed value by 
 amplitude ``s ~ U(min_amplitude, 1)``: ``v = relaxed + s (u - relaxed)``. Small amplitudes
 give everyday poses (arms down, legs straight), large ones the edges of the ranges. The
 Hips carry a uniform heading about Y; a fraction of samples (``tumble``) get a uniformly
-random orientation instead (flips, handstands, lying down).
+random orientation instead (flips, handstands, lying down). Independent draws seldom bring
+the feet or the hands together; ``together`` and ``arms_alike`` set fractions of samples with
+the legs together and the arms mirrored.
 
     gen = torch.Generator().manual_seed(0)
     pose = sample_poses(256, gen)               # (256, 77, 3)

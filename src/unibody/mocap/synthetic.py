@@ -2,8 +2,9 @@
 
 Bodies come from the native PCA shape space (all sizes and ages it spans, children
 included; by default three quarters of them get an adult stature, as in most mocap), poses
-from :func:`unibody.poses.sample_poses` (uniform heading, a fraction tumbling), markers
-from a :class:`~unibody.mocap.layout.MarkerLayout`. Per sample:
+from :func:`unibody.poses.sample_poses` (uniform heading; fractions tumbling, with the legs
+together, with the arms moving alike), markers from a
+:class:`~unibody.mocap.layout.MarkerLayout`. Per sample:
 
 - placement jitter: each marker moves to a random vertex near its layout vertex on the
   rest mesh, on the same side of the body (rest normals within ``jitter_cos``). The paper
