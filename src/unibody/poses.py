@@ -171,16 +171,16 @@ def sample_poses(
         root[tumbling] = _random_rotations(int(tumbling.sum()), generator, dtype)
     pose[:, index["Hips"]] = matrix_to_axis_angle(root)
     if together > 0:  # drawn last: the stream of together=0 is unchanged
-        close = torch.rand(n, generator=generator, dtype=dtype)[:, None] < together
+        close = torch.rand(n, generator=generator, dtype=dtype) < together
         u = 2 * torch.rand(n, 4, generator=generator, dtype=dtype) - 1
         ll, rl, ls, rs = (index[x] for x in ("LeftLeg", "RightLeg", "LeftShin", "RightShin"))
         adduct = 0.075 + 0.075 * u[:, :2]  # 0-0.15 rad toward the midline, each leg
-        pose[:, ll, 2] = torch.where(close[:, 0], -adduct[:, 0], pose[:, ll, 2])
-        pose[:, rl, 2] = torch.where(close[:, 0], adduct[:, 1], pose[:, rl, 2])
+        pose[:, ll, 2] = torch.where(close, -adduct[:, 0], pose[:, ll, 2])
+        pose[:, rl, 2] = torch.where(close, adduct[:, 1], pose[:, rl, 2])
         for left, right, k, name in ((ll, rl, 2, "LeftLeg"), (ls, rs, 3, "LeftShin")):  # flex alike, in range
             lo, hi = table[name][0][0], table[name][1][0]
             alike = (pose[:, left, 0] + 0.15 * u[:, k]).clamp(lo, hi)
-            pose[:, right, 0] = torch.where(close[:, 0], alike, pose[:, right, 0])
+            pose[:, right, 0] = torch.where(close, alike, pose[:, right, 0])
     if arms_alike > 0:  # drawn after `together`: the streams without it are unchanged
         alike = torch.rand(n, generator=generator, dtype=dtype)[:, None] < arms_alike
         for name in ("Shoulder", "Arm", "ForeArm", "Hand"):

@@ -47,8 +47,8 @@ __all__ = ["POSE", "SyntheticConfig", "SyntheticMocap"]
 # sum of three uniform draws seldom reaches its ends, so each of Neck1, Neck2 and Head turns
 # up to 0.65 rad: the neck's yaw then exceeds 45 deg in 7.5 % of the samples (the generic
 # ranges: 0.03 %), the turns at which real sessions confused the head-band markers. A third of
-# the samples keep their legs together (left and right toes within 20 cm: 18 % of the samples
-# instead of 0.5 %), where left and right forefoot markers come closest; in 40 % the arms
+# the samples keep their legs together (left and right toes within 20 cm: 20 % of the samples
+# instead of 2 %), where left and right forefoot markers come closest; in 40 % the arms
 # move alike (mirrored), so the hands meet as they do in real sessions (FIN markers within
 # 20 cm in 3.3 % of the samples instead of 0.9 %).
 POSE = {
