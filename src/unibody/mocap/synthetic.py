@@ -84,7 +84,9 @@ class SyntheticConfig:
             [lo, hi] of its length, at the layout vertex's distance from the bone within
             ``segment_band`` m, on the same side (``jitter_cos``). The forefoot markers slide
             along the foot too (labs put TOE anywhere from the second metatarsal head to the
-            toes, MT5 on the shaft or the head), t > 1 reaching past the toe joint.
+            toes, MT5 on the shaft or the head), t > 1 reaching past the toe joint; so do the
+            wrist-bar markers (solves of the CMU files put one end of the bar past the wrist,
+            on the hand, the other over the styloid) and FIN (from the wrist to the knuckles).
         loose: ``(label suffixes, radius in m)`` groups with their own jitter radius; a label
             belongs to the first group with a suffix it ends with.
         jitter_cos: a candidate vertex's rest normal has a cosine of at least this with the
@@ -119,17 +121,20 @@ class SyntheticConfig:
         ("FRM", "ForeArm", "Hand", 0.2, 0.8),
         ("TOE", "Foot", "ToeBase", 0.8, 1.3),
         ("MT5", "Foot", "ToeBase", 0.55, 1.05),
+        ("WRA", "ForeArm", "Hand", 0.85, 1.25),
+        ("WRB", "ForeArm", "Hand", 0.85, 1.25),
+        ("FIN", "Hand", "HandMiddle2", 0.1, 0.9),
     )
     segment_band: float = 0.03
     loose: tuple[tuple[tuple[str, ...], float], ...] = (
         (("BAK", "BAC"), 0.08),
         (("FHD", "BHD", "FWT", "BWT", "ASI", "PSI", "STRN", "CLAV"), 0.05),
-        (("C7", "T10", "FIN"), 0.04),
+        (("C7", "T10"), 0.04),
     )
     jitter_cos: float = 0.5
     distance: tuple[float, float] = (0.006, 0.02)
     stick_labels: tuple[str, ...] = ("LWRA", "LWRB", "RWRA", "RWRB")
-    stick_distance: tuple[float, float] = (0.03, 0.06)
+    stick_distance: tuple[float, float] = (0.02, 0.07)
     stick_prob: float = 0.5
     noise: tuple[float, float] = (0.0, 0.004)
     occlusions: tuple[int, int] = (0, 5)
