@@ -223,6 +223,29 @@ def test_sample_poses_arms_alike():
         sample_poses(2, g(), arms_alike=2.0)
 
 
+def test_sample_poses_bend():
+    """bend=1 flexes every elbow 1.2-2.4 rad (arm swing -1.5..1 rad) and every knee 1.2-2.3 rad
+    with the hip flexed 0..knee; bend=0 leaves the stream as it was; a fraction bends that share."""
+    g = torch.Generator
+    a = sample_poses(512, g().manual_seed(6), together=0.3)
+    assert torch.equal(a, sample_poses(512, g().manual_seed(6), together=0.3, bend=0.0))
+    b = sample_poses(512, g().manual_seed(6), bend=1.0)
+    for side, sign in (("Left", -1.0), ("Right", 1.0)):
+        elbow = sign * b[:, joint_index(side + "ForeArm") - 1, 1]
+        swing = -sign * b[:, joint_index(side + "Arm") - 1, 1]
+        knee, hip = b[:, joint_index(side + "Shin") - 1, 0], b[:, joint_index(side + "Leg") - 1, 0]
+        assert elbow.min() >= 1.2 and elbow.max() <= 2.4 and elbow.max() - elbow.min() > 1.1
+        assert swing.min() >= -1.5 and swing.max() <= 1.0 and swing.max() - swing.min() > 2.3
+        assert knee.min() >= 1.2 and knee.max() <= 2.3
+        assert (hip <= 0).all() and (hip >= torch.maximum(-knee, torch.tensor(-2.0)) - 1e-6).all()
+    c = sample_poses(4096, g().manual_seed(7), bend=0.3)
+    knee = c[:, joint_index("LeftShin") - 1, 0]
+    base = sample_poses(4096, g().manual_seed(7))[:, joint_index("LeftShin") - 1, 0]
+    assert 0.25 < float((knee >= 1.2).float().mean()) - 0.7 * float((base >= 1.2).float().mean()) < 0.35
+    with pytest.raises(ValueError, match="bend"):
+        sample_poses(2, g(), bend=1.5)
+
+
 def test_sample_poses_range_overrides():
     """A ranges entry replaces that joint's range; other joints keep theirs; unknown joints fail."""
     wide = {"Head": ((-0.2, -1.0, -0.15), (0.3, 1.0, 0.15), (0.0, 0.0, 0.0))}

@@ -11,8 +11,9 @@ amplitude ``s ~ U(min_amplitude, 1)``: ``v = relaxed + s (u - relaxed)``. Small 
 give everyday poses (arms down, legs straight), large ones the edges of the ranges. The
 Hips carry a uniform heading about Y; a fraction of samples (``tumble``) get a uniformly
 random orientation instead (flips, handstands, lying down). Independent draws seldom bring
-the feet or the hands together; ``together`` and ``arms_alike`` set fractions of samples with
-the legs together and the arms mirrored.
+the feet or the hands together, or bend an elbow or a knee deeply; ``together``,
+``arms_alike`` and ``bend`` set fractions of samples with the legs together, the arms
+mirrored and limbs bent.
 
     gen = torch.Generator().manual_seed(0)
     pose = sample_poses(256, gen)               # (256, 77, 3)
@@ -92,6 +93,7 @@ def sample_poses(
     tumble: float = 0.1,
     together: float = 0.0,
     arms_alike: float = 0.0,
+    bend: float = 0.0,
     fingers: bool = True,
     ranges: dict[str, tuple[tuple[float, float, float], ...]] | None = None,
     dtype: torch.dtype = torch.float32,
@@ -111,6 +113,12 @@ def sample_poses(
         arms_alike: fraction of samples whose right arm mirrors the left one (shoulder to
             hand, +-0.15 rad per component): symmetric movements, where the hands meet
             (within 20 cm in 7 % of these samples, 0.9 % of independent ones).
+        bend: fraction of limbs (each arm and each leg on its own) bent deeply: the elbow
+            flexed 1.2-2.4 rad with the arm swung anywhere from 1.5 rad forward to 1.0 rad back
+            (guards, hands on the hips, fists drawn back), or the knee 1.2-2.3 rad with the hip flexed from 0 to as much
+            (kneeling to squatting). The draws pulled toward the relaxed pose bend an elbow or
+            a knee past 90 deg in about 7 % of the samples; guards, punches and crouches hold
+            them there far longer.
         fingers: whether fingers curl (else they stay straight, as in the T-pose).
         ranges: entries that replace those of :data:`JOINT_RANGES` (same format, left-side names).
         dtype: float32 or float64.
@@ -128,6 +136,8 @@ def sample_poses(
         raise ValueError(f"together: expected a fraction in [0, 1], got {together}")
     if not 0.0 <= arms_alike <= 1.0:
         raise ValueError(f"arms_alike: expected a fraction in [0, 1], got {arms_alike}")
+    if not 0.0 <= bend <= 1.0:
+        raise ValueError(f"bend: expected a fraction in [0, 1], got {bend}")
     index = {name: i - 1 for i, name in enumerate(JOINT_NAMES)}  # pose rows are joints 1..77
     pose = torch.zeros(n, len(JOINT_NAMES) - 1, 3, dtype=dtype)
     amp = min_amplitude + (1.0 - min_amplitude) * torch.rand(n, 1, generator=generator, dtype=dtype)
@@ -170,7 +180,22 @@ def sample_poses(
     if bool(tumbling.any()):
         root[tumbling] = _random_rotations(int(tumbling.sum()), generator, dtype)
     pose[:, index["Hips"]] = matrix_to_axis_angle(root)
-    if together > 0:  # drawn last: the stream of together=0 is unchanged
+    if bend > 0:  # before `together` and `arms_alike`, which copy the left limbs; streams with 0 unchanged
+        u = torch.rand(n, 4, 3, generator=generator, dtype=dtype)  # per limb: whether, how deep, arm swing / hip share
+        bent = u[..., 0] < bend
+        for k, side in enumerate(("Left", "Right")):
+            elbow = index[side + "ForeArm"]  # flexion about -Y on the left, +Y on the right
+            flex = (1.2 + 1.2 * u[:, k, 1]) * (-1.0 if side == "Left" else 1.0)
+            pose[:, elbow, 1] = torch.where(bent[:, k], flex, pose[:, elbow, 1])
+            arm = index[side + "Arm"]
+            swing = (-1.5 + 2.5 * u[:, k, 2]) * (1.0 if side == "Left" else -1.0)  # forward to far back
+            pose[:, arm, 1] = torch.where(bent[:, k], swing, pose[:, arm, 1])
+            hip, knee = index[side + "Leg"], index[side + "Shin"]
+            flex = 1.2 + 1.1 * u[:, k + 2, 1]
+            pose[:, knee, 0] = torch.where(bent[:, k + 2], flex, pose[:, knee, 0])
+            hip_flex = (-flex * u[:, k + 2, 2]).clamp_min(table["LeftLeg"][0][0])
+            pose[:, hip, 0] = torch.where(bent[:, k + 2], hip_flex, pose[:, hip, 0])
+    if together > 0:  # drawn after `bend`: the stream of together=0 is unchanged
         close = torch.rand(n, generator=generator, dtype=dtype) < together
         u = 2 * torch.rand(n, 4, generator=generator, dtype=dtype) - 1
         ll, rl, ls, rs = (index[x] for x in ("LeftLeg", "RightLeg", "LeftShin", "RightShin"))
