@@ -4,7 +4,7 @@
     OMP_NUM_THREADS=1 python scripts/train_labeler.py --layout pig39 --subsets pig35 --extras 40 \
         --out build/labeler_pig39 --threads 1
 
-The shipped weights were trained in several runs (cmu41: nine, pig39: seven), each starting
+The shipped weights were trained in several runs (cmu41: eleven, pig39: seven), each starting
 from the last (``--init``) as the synthetic data improved; the exact commands, with the
 revision of each run, are in each weights file's ``meta["recipe"]`` and in benchmarks/README.md:
 
