@@ -114,11 +114,11 @@ def sample_poses(
             hand, +-0.15 rad per component): symmetric movements, where the hands meet
             (within 20 cm in 7 % of these samples, 0.9 % of independent ones).
         bend: fraction of limbs (each arm and each leg on its own) bent deeply: the elbow
-            flexed 1.2-2.4 rad with the arm swung anywhere from 1.5 rad forward to 1.0 rad back
-            (guards, hands on the hips, fists drawn back), or the knee 1.2-2.3 rad with the hip flexed from 0 to as much
-            (kneeling to squatting). The draws pulled toward the relaxed pose bend an elbow or
-            a knee past 90 deg in about 7 % of the samples; guards, punches and crouches hold
-            them there far longer.
+            flexed 1.2-2.4 rad with the arm swung anywhere from 1.5 rad forward to 1.0 rad
+            back (guards, hands on the hips, fists drawn back), or the knee 1.2-2.3 rad with
+            the hip flexed from 0 to as much (kneeling to squatting). The draws pulled toward
+            the relaxed pose bend an elbow or a knee past 90 deg in about 7 % of the samples;
+            guards, punches and crouches hold them there far longer.
         fingers: whether fingers curl (else they stay straight, as in the T-pose).
         ranges: entries that replace those of :data:`JOINT_RANGES` (same format, left-side names).
         dtype: float32 or float64.
@@ -180,20 +180,18 @@ def sample_poses(
     if bool(tumbling.any()):
         root[tumbling] = _random_rotations(int(tumbling.sum()), generator, dtype)
     pose[:, index["Hips"]] = matrix_to_axis_angle(root)
-    if bend > 0:  # before `together` and `arms_alike`, which copy the left limbs; streams with 0 unchanged
-        u = torch.rand(n, 4, 3, generator=generator, dtype=dtype)  # per limb: whether, how deep, arm swing / hip share
+    if bend > 0:  # before `together` and `arms_alike` (they copy the left limbs); bend=0 keeps the stream
+        u = torch.rand(n, 4, 3, generator=generator, dtype=dtype)  # per limb: whether, depth, swing/hip share
         bent = u[..., 0] < bend
-        for k, side in enumerate(("Left", "Right")):
-            elbow = index[side + "ForeArm"]  # flexion about -Y on the left, +Y on the right
-            flex = (1.2 + 1.2 * u[:, k, 1]) * (-1.0 if side == "Left" else 1.0)
+        for k, (side, sign) in enumerate((("Left", 1.0), ("Right", -1.0))):  # the right side mirrors Y
+            elbow, arm = index[side + "ForeArm"], index[side + "Arm"]
+            flex, swing = -sign * (1.2 + 1.2 * u[:, k, 1]), sign * (-1.5 + 2.5 * u[:, k, 2])
             pose[:, elbow, 1] = torch.where(bent[:, k], flex, pose[:, elbow, 1])
-            arm = index[side + "Arm"]
-            swing = (-1.5 + 2.5 * u[:, k, 2]) * (1.0 if side == "Left" else -1.0)  # forward to far back
-            pose[:, arm, 1] = torch.where(bent[:, k], swing, pose[:, arm, 1])
+            pose[:, arm, 1] = torch.where(bent[:, k], swing, pose[:, arm, 1])  # forward to far back
             hip, knee = index[side + "Leg"], index[side + "Shin"]
             flex = 1.2 + 1.1 * u[:, k + 2, 1]
-            pose[:, knee, 0] = torch.where(bent[:, k + 2], flex, pose[:, knee, 0])
             hip_flex = (-flex * u[:, k + 2, 2]).clamp_min(table["LeftLeg"][0][0])
+            pose[:, knee, 0] = torch.where(bent[:, k + 2], flex, pose[:, knee, 0])
             pose[:, hip, 0] = torch.where(bent[:, k + 2], hip_flex, pose[:, hip, 0])
     if together > 0:  # drawn after `bend`: the stream of together=0 is unchanged
         close = torch.rand(n, generator=generator, dtype=dtype) < together
