@@ -3,6 +3,14 @@
     OMP_NUM_THREADS=1 python scripts/train_labeler.py --layout cmu41 --out build/labeler_cmu41 --threads 1
     OMP_NUM_THREADS=1 python scripts/train_labeler.py --layout pig39 --subsets pig35 --extras 40 \
         --out build/labeler_pig39 --threads 1
+    OMP_NUM_THREADS=2 python scripts/train_labeler.py --layout cmu41 --orient-with cmu41 --init cmu41 \
+        --out build/oriented_cmu41 --threads 2
+
+The third trains the second stage of a two-stage labeler: frames are first labelled by the
+``--orient-with`` labeler (frozen, saved inside the new weights; of a two-stage labeler, its
+first stage) and rotated into the rest frame by its torso labels (:mod:`unibody.mocap.orient`);
+``--init`` starts the new network from a labeler's weights (of a two-stage one, its second
+stage).
 
 The shipped weights were trained in several runs (cmu41: eleven, pig39: seven), each starting
 from the last (``--init``) as the synthetic data improved; the exact commands, with the
@@ -38,6 +46,7 @@ import torch
 from unibody.mocap.corrupt import MocapBatch
 from unibody.mocap.labeler import Labeler, labeling_loss, predict
 from unibody.mocap.layout import MarkerLayout
+from unibody.mocap.orient import torso_template
 from unibody.mocap.pipeline import load_labeler
 from unibody.mocap.synthetic import SyntheticConfig, SyntheticMocap
 
@@ -105,6 +114,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--log-every", type=float, default=20.0, help="seconds")
     p.add_argument("--stop-at", type=int, help="checkpoint and stop after this step (resume later)")
     p.add_argument("--init", help="start from labeler weights (name or path) or another run's checkpoint.pt")
+    p.add_argument("--orient-with", help="labeler (name or path) whose torso labels orient every frame first")
+    p.add_argument("--orienter-refine", type=int, default=1, help="the orienter's re-centring passes")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     rev = git_rev()  # the code the run started from
@@ -118,6 +129,15 @@ def main(argv: list[str] | None = None) -> None:
     val = [val_data.sample(min(256, args.val_frames), val_gen) for _ in range(max(1, args.val_frames // 256))]
 
     torch.manual_seed(args.seed)
+    orient = {}
+    if args.orient_with:
+        orienter = load_labeler(args.orient_with)
+        orienter = orienter.orienter or orienter  # a two-stage labeler lends its first stage
+        if orienter.label_names != layout.labels:
+            raise SystemExit(f"--orient-with: {args.orient_with} labels {orienter.label_names}, not {layout.name}")
+        orienter.config["refine"] = args.orienter_refine
+        template, torso = torso_template(layout)
+        orient = {"orienter": orienter, "template": template, "torso": torso}
     model = Labeler(
         len(layout),
         label_names=layout.labels,
@@ -126,15 +146,22 @@ def main(argv: list[str] | None = None) -> None:
         heads=args.heads,
         centre=args.centre,
         refine=args.refine,
+        **orient,
     )
-    if args.init and args.init.endswith("checkpoint.pt"):  # another run's training checkpoint
-        model.load_state_dict(torch.load(args.init, weights_only=True)["model"])
-    elif args.init:
-        start = load_labeler(args.init)
-        if start.label_names != layout.labels:
-            raise SystemExit(f"--init: {args.init} labels {start.label_names} differ from layout {layout.name}")
-        model.load_state_dict(start.state_dict())
-    opt = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
+    if args.init:
+        if args.init.endswith("checkpoint.pt"):  # another run's training checkpoint
+            start = torch.load(args.init, weights_only=True)["model"]
+        else:
+            start_model = load_labeler(args.init)
+            if start_model.label_names != layout.labels:
+                raise SystemExit(f"--init: {args.init} labels {start_model.label_names} differ from {layout.name}")
+            start = start_model.state_dict()
+        own = [k for k in model.state_dict() if not k.startswith("orienter.") and k not in ("template", "torso")]
+        if missing := [k for k in own if k not in start]:
+            raise SystemExit(f"--init: {args.init} lacks {missing[:3]}")
+        model.load_state_dict({k: start[k] for k in own}, strict=False)
+    trainable = [x for x in model.parameters() if x.requires_grad]
+    opt = torch.optim.Adam(trainable, lr=args.lr, weight_decay=args.weight_decay)
 
     def lr_at(step: int) -> float:  # linear warm-up, then cosine to 2 % of the base rate
         if step < args.warmup:
@@ -173,7 +200,7 @@ def main(argv: list[str] | None = None) -> None:
             raise FloatingPointError(f"non-finite loss at step {step}")
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+        torch.nn.utils.clip_grad_norm_(trainable, 5.0)
         opt.step()
         step += 1
         loss_avg = float(loss.detach()) if loss_avg is None else 0.98 * loss_avg + 0.02 * float(loss.detach())
@@ -212,6 +239,9 @@ def main(argv: list[str] | None = None) -> None:
         "extras": args.extras,
         "extra_distance": list(args.extra_distance),
         "stick_prob": args.stick_prob,
+        "orient_with": args.orient_with,
+        "orienter_refine": args.orienter_refine if args.orient_with else None,
+        "orienter": orient["orienter"].meta if orient else None,
         "synthetic_val_accuracy": round(acc, 5),
         "synthetic_val_marker_accuracy": round(acc_m, 5),
         "val_frames": sum(len(b.points) for b in val),

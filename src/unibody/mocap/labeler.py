@@ -18,6 +18,13 @@ invariance to rotations about the vertical axis comes from training data only (t
 synthetic generator draws a uniform heading), as in the paper. It is permutation
 equivariant, so the order of the points does not matter.
 
+Two stages (our addition): a labeler may carry an ``orienter``, a labeler trained on frames
+in every orientation. Each frame is labelled by the orienter first, rotated into the layout's
+rest frame by a rigid fit of its torso markers (:mod:`unibody.mocap.orient`) and centred on
+the points the orienter called markers; this labeler, trained on frames oriented the same
+way, then labels it with up, left and front as fixed axes. Lying, tumbling and leaning
+bodies gain most.
+
 Differences from the paper's network (1.44 M parameters, d=125, 8 layers, 5 heads,
 BatchNorm, post-merge MLP): LayerNorm instead of BatchNorm (no train/eval difference, no
 batch statistics over padding) and a smaller default size so that labelling runs at
@@ -34,6 +41,7 @@ import torch
 from torch import nn
 
 from .._checks import check_finite, check_like, check_shape
+from .orient import fit_rotation
 from .sinkhorn import log_sinkhorn
 
 if TYPE_CHECKING:
@@ -100,6 +108,11 @@ class Labeler(nn.Module):
             each frame on the midrange of all its points, each further pass on the ``centre``
             rule applied to the points the last pass labelled as markers. Extra markers or
             ghosts crowded on one part of the body then no longer move the frame's centre.
+        orienter: a labeler of the same labels (without an orienter of its own) whose labels
+            orient every frame, in training too; its weights are frozen and saved with these.
+        template, torso: (L, 3) rest-frame marker positions and (L,) bool torso markers that
+            the orienter's labels are fitted to (:func:`~unibody.mocap.orient.torso_template`);
+            needed with ``orienter``.
 
     Attributes:
         meta: free-form training record (command, seed, steps, metrics), saved with the weights.
@@ -116,6 +129,9 @@ class Labeler(nn.Module):
         sinkhorn_iters: int = 35,
         centre: str = "median",
         refine: int = 0,
+        orienter: Labeler | None = None,
+        template: torch.Tensor | None = None,
+        torso: torch.Tensor | None = None,
     ) -> None:
         super().__init__()
         if num_labels < 1:
@@ -139,6 +155,20 @@ class Labeler(nn.Module):
         self.blocks = nn.ModuleList(_Block(width, heads) for _ in range(layers))
         self.head = nn.Sequential(nn.LayerNorm(width), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, num_labels))
         self.bin_score = nn.Parameter(torch.tensor(1.0))
+        self.orienter = orienter
+        if orienter is not None:
+            if orienter.orienter is not None or orienter.label_names != names:
+                raise ValueError("orienter: expected a labeler of the same labels without an orienter of its own")
+            if template is None or torso is None:
+                raise ValueError("template, torso: needed with an orienter (see unibody.mocap.orient.torso_template)")
+            check_shape(template, f"{num_labels} 3", name="template")
+            check_shape(torso, f"{num_labels}", name="torso")
+            if torso.dtype != torch.bool or int(torso.sum()) < 4:
+                raise ValueError(f"torso: expected a bool mask of at least 4 markers, got {torso.dtype}, {torso}")
+            orienter.requires_grad_(False)
+            self.config["orienter"] = dict(orienter.config)
+            self.register_buffer("template", template.detach().to(self.bin_score.dtype).clone())
+            self.register_buffer("torso", torso.clone())
 
     @property
     def num_labels(self) -> int:
@@ -198,7 +228,11 @@ class Labeler(nn.Module):
         if refine < 0:
             raise ValueError(f"refine: expected >= 0, got {refine}")
         iters, null = self.config["sinkhorn_iters"], self.num_labels
-        centre = self.centres(points, mask, "midrange" if refine else None)
+        if self.orienter is not None:
+            rot, centre = self.orient(points, mask)
+            points = points @ rot.transpose(1, 2)
+        else:
+            centre = self.centres(points, mask, "midrange" if refine else None)
         for _ in range(refine):
             with torch.no_grad():
                 plan = log_sinkhorn(self.scores(points, mask, centre), self.bin_score, mask, iters)
@@ -206,6 +240,27 @@ class Labeler(nn.Module):
                 marker = torch.where(marker.sum(dim=1, keepdim=True) >= 3, marker, mask)
                 centre = self.centres(points, marker)
         return log_sinkhorn(self.scores(points, mask, centre), self.bin_score, mask, iters)
+
+    @torch.no_grad()
+    def orient(self, points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rotation of each frame into the rest frame (B, 3, 3), and the rotated frame's centre (B, 3).
+
+        The orienter labels each frame; the points it gives torso labels, weighted by its
+        confidence, are fitted to the template (:func:`~unibody.mocap.orient.fit_rotation`);
+        the centre is the ``centre`` rule over the rotated points it called markers (all
+        points if fewer than 3). Same arguments as :meth:`forward`.
+        """
+        if self.orienter is None:
+            raise ValueError("orient: this labeler has no orienter")
+        points = torch.where(mask[..., None], points, 0.0)  # padding may hold anything
+        labels, confidence = predict(self.orienter(points, mask), mask)
+        null = self.num_labels
+        known = labels.clamp_max(null - 1)
+        weights = torch.where(mask & (labels != null) & self.torso[known], confidence, 0.0)
+        rot = fit_rotation(points, weights, self.template[known])
+        marker = mask & (labels != null)
+        marker = torch.where(marker.sum(dim=1, keepdim=True) >= 3, marker, mask)
+        return rot, self.centres(points @ rot.transpose(1, 2), marker)
 
     def save(self, path: str | Path, meta: dict | None = None) -> None:
         """Write weights, configuration, label names and ``meta`` (default :attr:`meta`) to one file.
@@ -228,7 +283,13 @@ class Labeler(nn.Module):
             found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
             raise ValueError(f"{path}: expected a {LABELER_FORMAT!r} file, got {found!r}")
         cfg = payload["config"]
-        model = cls(cfg.pop("num_labels"), label_names=payload["label_names"], **cfg)
+        names = payload["label_names"]
+        if "orienter" in cfg:  # placeholders, filled by the state dict
+            ocfg = cfg.pop("orienter")
+            n = cfg["num_labels"]
+            cfg.update(orienter=cls(ocfg.pop("num_labels"), label_names=names, **ocfg), template=torch.zeros(n, 3),
+                       torso=torch.arange(n) < 4)  # fmt: skip
+        model = cls(cfg.pop("num_labels"), label_names=names, **cfg)
         model.load_state_dict(payload["state_dict"])
         model.meta = payload["meta"]
         return model
