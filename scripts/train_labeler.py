@@ -50,13 +50,15 @@ from unibody.mocap.orient import torso_template
 from unibody.mocap.pipeline import load_labeler
 from unibody.mocap.synthetic import SyntheticConfig, SyntheticMocap
 
+HEAD_BANDS = (("FHD", 10.0, 100.0), ("BHD", 110.0, 170.0))  # --head-bands: azimuths from the front, degrees
+
 
 def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, identities: int) -> SyntheticMocap:
     subs = tuple(MarkerLayout.load(s).labels for s in args.subsets)
     cfg = SyntheticConfig(
         identities=identities, pool_seed=pool_seed, subsets=subs, extras=args.extras,
         extra_distance=(args.extra_distance[0], args.extra_distance[1]), stick_prob=args.stick_prob,
-        stature_prob=args.stature_prob,
+        stature_prob=args.stature_prob, bands=HEAD_BANDS if args.head_bands else (),
     )  # fmt: skip
     return SyntheticMocap(layout, cfg)
 
@@ -102,6 +104,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--identities", type=int, default=1024)
     p.add_argument("--extras", type=int, default=0, help="up to this many markers of another protocol per frame")
     p.add_argument("--stick-prob", type=float, default=0.5, help="fraction of samples with wrist bars")
+    p.add_argument("--head-bands", action="store_true", help="head markers anywhere around the head (HEAD_BANDS)")
     p.add_argument(
         "--extra-distance", type=float, nargs=2, default=(0.03, float("inf")), metavar=("LO", "HI"),
         help="m, range of an extra marker's distance to the nearest layout vertex",
@@ -239,6 +242,7 @@ def main(argv: list[str] | None = None) -> None:
         "extras": args.extras,
         "extra_distance": list(args.extra_distance),
         "stick_prob": args.stick_prob,
+        "head_bands": args.head_bands,
         "orient_with": args.orient_with,
         "orienter_refine": args.orienter_refine if args.orient_with else None,
         "orienter": orient["orienter"].meta if orient else None,

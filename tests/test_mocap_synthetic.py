@@ -168,6 +168,31 @@ def test_synthetic_jitter_and_subsets():
     assert not m[:, ~extra].isnan().any()
 
 
+def test_synthetic_head_bands_follow_the_config():
+    """Head-band markers go anywhere between their azimuths, on their side, near their height:
+    the front pair 8-18 cm apart (5th-95th percentile; the evaluation files: 8.5-18.7), and never
+    on the face or the back of the neck."""
+    lay = MarkerLayout.load("pig39")
+    bands = (("FHD", 10.0, 100.0), ("BHD", 110.0, 170.0))
+    syn = SyntheticMocap(lay, SyntheticConfig(identities=16, bands=bands, noise=(0.0, 0.0)))
+    assert float(syn.jitter_radii()[lay.index("LFHD")]) == 0.0
+    rest = syn.layer.prepare_identity(torch.zeros(1, 16))
+    head = rest.rest_vertices[0] - rest.rest_joints[0, syn.layer.joint_names.index("Head")]
+    cand = syn.used[syn.candidates]
+    for label, lo, hi in (("LFHD", 10, 100), ("RFHD", 10, 100), ("LBHD", 110, 170), ("RBHD", 110, 170)):
+        i = lay.index(label)
+        v = head[cand[i, : syn.num_candidates[i]]]
+        side = 1.0 if label[0] == "L" else -1.0
+        azimuth = torch.rad2deg(torch.atan2(side * v[:, 0], v[:, 2]))
+        assert float(azimuth.min()) >= lo and float(azimuth.max()) <= hi, label
+        assert float(azimuth.max() - azimuth.min()) > 0.6 * (hi - lo), label  # spread over the band
+        assert float((v[:, 1] - head[lay.vertices[i], 1]).abs().max()) <= 0.025 + 1e-6
+    m = syn.markers(2000, torch.Generator().manual_seed(0))
+    front = (m[:, lay.index("LFHD")] - m[:, lay.index("RFHD")]).norm(dim=-1)
+    lo, hi = torch.quantile(front, torch.tensor([0.05, 0.95]))
+    assert 0.06 < float(lo) < 0.09 and 0.17 < float(hi) < 0.2, (lo, hi)
+
+
 def test_synthetic_extra_markers_are_null_and_off_the_layout():
     """Markers of another protocol: 0..E per frame, on the body away from the layout, labelled null."""
     lay = MarkerLayout.load("pig39")

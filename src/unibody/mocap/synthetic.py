@@ -92,6 +92,12 @@ class SyntheticConfig:
             on the hand, the other over the styloid) and FIN (from the wrist to the knuckles).
         loose: ``(label suffixes, radius in m)`` groups with their own jitter radius; a label
             belongs to the first group with a suffix it ends with.
+        bands, band_height: ``(label suffix, lo, hi)``: head-band markers anywhere around the
+            head between azimuths lo and hi (degrees from the front, about the vertical through
+            the Head joint of the rest pose, on the marker's side), within ``band_height`` m of
+            the layout vertex's height. Labs wear head bands anywhere from the forehead to the
+            temples (front markers 8-19 cm apart in the evaluation files) and from the occiput
+            to behind the ears (back markers 8-19 cm apart). Empty: the ``loose`` radius.
         jitter_cos: a candidate vertex's rest normal has a cosine of at least this with the
             layout vertex's normal (jitter stays on the same side of a limb).
         distance: m, marker-to-skin distance range.
@@ -134,6 +140,8 @@ class SyntheticConfig:
         (("FHD", "BHD", "FWT", "BWT", "ASI", "PSI", "STRN", "CLAV"), 0.05),
         (("C7", "T10"), 0.04),
     )
+    bands: tuple[tuple[str, float, float], ...] = ()
+    band_height: float = 0.025
     jitter_cos: float = 0.5
     distance: tuple[float, float] = (0.006, 0.02)
     stick_labels: tuple[str, ...] = ("LWRA", "LWRB", "RWRA", "RWRB")
@@ -194,6 +202,18 @@ class SyntheticMocap:
                 perp = (mean - a - t[:, None] * axis).norm(dim=1)
                 band = (perp - perp[layout.vertices[i]]).abs() <= config.segment_band
                 near[i] = (t >= lo) & (t <= hi) & band & same_side[i]
+            head = mean - joints["Head"]
+            flat = torch.nn.functional.normalize(head * head.new_tensor([1.0, 0.0, 1.0]), dim=1)
+            outward = ((normal * flat).sum(1) > 0.3) & (head.norm(dim=1) < 0.15)  # the skull's surface
+            for i, label in enumerate(layout.labels):
+                band = [x for x in config.bands if label.endswith(x[0])]
+                if not band:
+                    continue
+                _, lo, hi = band[0]
+                side = 1.0 if label.startswith("L") else -1.0
+                azimuth = torch.rad2deg(torch.atan2(side * head[:, 0], head[:, 2]))
+                height = (head[:, 1] - head[layout.vertices[i], 1]).abs() <= config.band_height
+                near[i] = (azimuth >= lo) & (azimuth <= hi) & height & outward
             near[torch.arange(len(layout)), layout.vertices] = True
             lo, hi = config.extra_distance
             nearest = d.min(0).values
@@ -235,11 +255,11 @@ class SyntheticMocap:
         ]
 
     def jitter_radii(self) -> torch.Tensor:
-        """(M,) m, the placement jitter radius of each layout marker (0 for ``segments`` markers)."""
+        """(M,) m, the placement jitter radius of each layout marker (0 for ``segments`` and ``bands``)."""
         radii = []
         for label in self.layout.labels:
-            groups = [r for suffixes, r in self.config.loose if label.endswith(tuple(suffixes))]
-            groups += [0.0 for x in self.config.segments if label.endswith(x[0])]  # placed by bone
+            groups = [0.0 for x in self.config.segments + self.config.bands if label.endswith(x[0])]  # by rule
+            groups += [r for suffixes, r in self.config.loose if label.endswith(tuple(suffixes))]
             radii.append(groups[0] if groups else self.config.jitter_radius)
         return torch.tensor(radii)
 
