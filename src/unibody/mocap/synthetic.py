@@ -14,7 +14,7 @@ together, with the arms moving alike), markers from a
   their bone (``segments``: Plug-in Gait, CMU and KIT guides place them at a height "not
   critical", left and right at different heights, e.g. CMU's RTHI high and LTHI low);
   RBAK "anywhere over the right scapula", head-band, sternum and waist markers within the
-  wider ``loose`` radii;
+  wider ``loose`` radii, or head-band markers anywhere around the head (``bands``);
 - marker-to-skin distance uniform in ``distance``; Gaussian noise of a per-frame std
   uniform in ``noise``;
 - optional label subsets (a smaller layout inside the model's, e.g. Plug-in Gait 35
