@@ -193,6 +193,23 @@ def test_synthetic_head_bands_follow_the_config():
     assert 0.06 < float(lo) < 0.09 and 0.17 < float(hi) < 0.2, (lo, hi)
 
 
+def test_synthetic_wrist_markers_sit_across_the_wrist():
+    """WRA and WRB across the wrist (thumb and little-finger side): the elbow marker about as far
+    from one as from the other (every evaluation file: within 2 cm; the 0.85-1.25 slide put WRB
+    2.9 cm nearer), FIN on the back of the hand, 6.5-12 cm from WRA in the files (was 5.1)."""
+    lay = MarkerLayout.load("cmu41")
+    syn = SyntheticMocap(lay, SyntheticConfig(identities=32, stick_prob=0.0, noise=(0.0, 0.0)))
+    m = syn.markers(2000, torch.Generator().manual_seed(0))
+
+    def dist(a: str, b: str) -> torch.Tensor:
+        return torch.cat([(m[:, lay.index(s + a)] - m[:, lay.index(s + b)]).norm(dim=-1) for s in "LR"])
+
+    gap = dist("ELB", "WRA").median() - dist("ELB", "WRB").median()
+    assert abs(float(gap)) < 0.02, gap
+    assert 0.065 < float(dist("WRA", "FIN").median()) < 0.1
+    assert 0.05 < float(dist("WRA", "WRB").median()) < 0.1  # the styloids, no bar
+
+
 def test_synthetic_extra_markers_are_null_and_off_the_layout():
     """Markers of another protocol: 0..E per frame, on the body away from the layout, labelled null."""
     lay = MarkerLayout.load("pig39")
