@@ -12,9 +12,10 @@ first stage) and rotated into the rest frame by its torso labels (:mod:`unibody.
 ``--init`` starts the new network from a labeler's weights (of a two-stage one, its second
 stage).
 
-The shipped weights were trained in several runs (cmu41: eleven, pig39: seven), each starting
-from the last (``--init``) as the synthetic data improved; the exact commands, with the
-revision of each run, are in each weights file's ``meta["recipe"]`` and in benchmarks/README.md:
+The shipped weights are two-stage labelers trained in several runs (first stage: cmu41 eleven,
+pig39 seven; second stage: cmu41 two, pig39 one), each starting from the last (``--init``) as
+the synthetic data improved; the exact commands, with the revision of each run, are in each
+weights file's ``meta["recipe"]`` and in benchmarks/README.md:
 
     python -c "from unibody.mocap.pipeline import load_labeler; print(*load_labeler('cmu41').meta['recipe'], sep='\\n')"
 
