@@ -94,6 +94,7 @@ def sample_poses(
     together: float = 0.0,
     arms_alike: float = 0.0,
     bend: float = 0.0,
+    chamber: float = 0.0,
     fingers: bool = True,
     ranges: dict[str, tuple[tuple[float, float, float], ...]] | None = None,
     dtype: torch.dtype = torch.float32,
@@ -119,6 +120,10 @@ def sample_poses(
             the hip flexed from 0 to as much (kneeling to squatting). The draws pulled toward
             the relaxed pose bend an elbow or a knee past 90 deg in about 7 % of the samples;
             guards, punches and crouches hold them there far longer.
+        chamber: fraction of arms (each on its own) held with the fist at the waist: the arm
+            lowered 1.25-1.5 rad and drawn back 0.2-0.8 rad, the elbow flexed 1.4-2.3 rad
+            (martial-arts chambers, hands on the hips, running arms). ``bend`` swings bent
+            arms about the vertical, which seldom brings the hand beside the waist.
         fingers: whether fingers curl (else they stay straight, as in the T-pose).
         ranges: entries that replace those of :data:`JOINT_RANGES` (same format, left-side names).
         dtype: float32 or float64.
@@ -138,6 +143,8 @@ def sample_poses(
         raise ValueError(f"arms_alike: expected a fraction in [0, 1], got {arms_alike}")
     if not 0.0 <= bend <= 1.0:
         raise ValueError(f"bend: expected a fraction in [0, 1], got {bend}")
+    if not 0.0 <= chamber <= 1.0:
+        raise ValueError(f"chamber: expected a fraction in [0, 1], got {chamber}")
     index = {name: i - 1 for i, name in enumerate(JOINT_NAMES)}  # pose rows are joints 1..77
     pose = torch.zeros(n, len(JOINT_NAMES) - 1, 3, dtype=dtype)
     amp = min_amplitude + (1.0 - min_amplitude) * torch.rand(n, 1, generator=generator, dtype=dtype)
@@ -204,6 +211,17 @@ def sample_poses(
             lo, hi = table[name][0][0], table[name][1][0]
             alike = (pose[:, left, 0] + 0.15 * u[:, k]).clamp(lo, hi)
             pose[:, right, 0] = torch.where(close, alike, pose[:, right, 0])
+    if chamber > 0:  # drawn after `together`, before `arms_alike` (it may copy a chambered left arm)
+        u = torch.rand(n, 2, 4, generator=generator, dtype=dtype)  # per arm: whether, lower, back, flex
+        for k, (side, sign) in enumerate((("Left", 1.0), ("Right", -1.0))):
+            on = u[:, k, 0] < chamber
+            lower = axis_angle_to_matrix(-(1.25 + 0.25 * u[:, k, 1, None]) * pose.new_tensor([0.0, 0.0, 1.0]))
+            back = axis_angle_to_matrix((0.2 + 0.6 * u[:, k, 2, None]) * pose.new_tensor([1.0, 0.0, 0.0]))
+            arm = matrix_to_axis_angle(back @ lower)  # lowered to the side, then drawn back
+            arm = arm if sign > 0 else _mirror(arm)
+            elbow, upper = index[side + "ForeArm"], index[side + "Arm"]
+            pose[:, upper] = torch.where(on[:, None], arm, pose[:, upper])
+            pose[:, elbow, 1] = torch.where(on, -sign * (1.4 + 0.9 * u[:, k, 3]), pose[:, elbow, 1])
     if arms_alike > 0:  # drawn after `together`: the streams without it are unchanged
         alike = torch.rand(n, generator=generator, dtype=dtype)[:, None] < arms_alike
         for name in ("Shoulder", "Arm", "ForeArm", "Hand"):
