@@ -19,8 +19,9 @@ weights file's ``meta["recipe"]`` and in benchmarks/README.md:
 
     python -c "from unibody.mocap.pipeline import load_labeler; print(*load_labeler('cmu41').meta['recipe'], sep='\\n')"
 
-Two runs side by side with ``--threads 1`` each use a 2-core machine best (about 2 steps/s
-each); one run alone goes about 1.7x faster with ``--threads 2``.
+Two runs side by side with ``--threads 1`` each use a 2-core machine best (one-stage runs
+about 2 steps/s each; second stages, their frozen first stage included, about 0.8 (cmu41)
+and 0.55 (pig39)); one run alone goes about 1.7x faster with ``--threads 2``.
 
 Data is drawn on the fly from :class:`unibody.mocap.synthetic.SyntheticMocap` (a pool of
 PCA bodies from ``--pool-seed``, seeded poses, jitter, noise, occlusions, ghosts). Validation
