@@ -60,6 +60,7 @@ def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, id
     cfg = SyntheticConfig(
         identities=identities, pool_seed=pool_seed, subsets=subs, extras=args.extras,
         extra_distance=(args.extra_distance[0], args.extra_distance[1]), stick_prob=args.stick_prob,
+        extra_prob=args.extra_prob, extra_clusters=args.extra_clusters,
         stature_prob=args.stature_prob, bands=HEAD_BANDS if args.head_bands else (),
     )  # fmt: skip
     return SyntheticMocap(layout, cfg)
@@ -105,6 +106,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--refine", type=int, default=2, help="re-centring passes when labelling (not in training)")
     p.add_argument("--identities", type=int, default=1024)
     p.add_argument("--extras", type=int, default=0, help="up to this many markers of another protocol per frame")
+    p.add_argument("--extra-prob", type=float, default=0.3, help="fraction of batches with --extras")
+    p.add_argument("--extra-clusters", type=float, default=0.0, help="of those, fraction in tracking clusters")
     p.add_argument("--stick-prob", type=float, default=0.5, help="fraction of samples with wrist bars")
     p.add_argument("--head-bands", action="store_true", help="head markers anywhere around the head (HEAD_BANDS)")
     p.add_argument(
@@ -243,6 +246,8 @@ def main(argv: list[str] | None = None) -> None:
         "subsets": args.subsets,
         "extras": args.extras,
         "extra_distance": list(args.extra_distance),
+        "extra_prob": args.extra_prob,
+        "extra_clusters": args.extra_clusters,
         "stick_prob": args.stick_prob,
         "head_bands": args.head_bands,
         "orient_with": args.orient_with,

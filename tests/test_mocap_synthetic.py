@@ -233,6 +233,32 @@ def test_synthetic_extra_markers_are_null_and_off_the_layout():
     assert (batch.available.sum(1) == (batch.mask & (batch.labels < 39)).sum(1)).all()
 
 
+def test_synthetic_extra_markers_in_tracking_clusters():
+    """extra_clusters: each run of cluster_size extras is a plate of distinct vertices within
+    cluster_radius of its first one on the rest mesh; without it, extras scatter over the body."""
+    lay = MarkerLayout.load("pig39")
+    cfg = SyntheticConfig(identities=4, extras=12, extra_prob=1.0, extra_clusters=1.0, noise=(0.0, 0.0), spread=0.0)
+    syn = SyntheticMocap(lay, cfg)
+    gen = torch.Generator().manual_seed(3)
+    pick = torch.randint(len(syn.extra_pool), (500, 12), generator=gen)
+    members = syn._clusters(pick, gen).reshape(500, 4, 3)
+    mean = syn.layer.identity(torch.zeros(1, 16))[0][syn.used[syn.extra_pool]]
+    centre = mean[pick[:, ::3]][:, :, None]
+    assert float((mean[members] - centre).norm(dim=-1).max()) <= cfg.cluster_radius + 1e-6
+    short = syn.cluster_count[pick[:, ::3]] >= 3
+    distinct = (members.sort(-1).values.diff(dim=-1) != 0).all(-1)
+    assert bool(distinct[short].all()) and short.float().mean() > 0.9
+    _, grouped = syn.markers_and_extras(500, torch.Generator().manual_seed(4), 12, clusters=True)
+    _, loose = syn.markers_and_extras(500, torch.Generator().manual_seed(4), 12)
+
+    def spread(e):  # the largest distance within each full plate of 3, median over plates
+        g = e.reshape(500, 4, 3, 3)
+        d = (g[:, :, :, None] - g[:, :, None]).norm(dim=-1).flatten(2).amax(-1)
+        return d[torch.isfinite(d)].median()
+
+    assert spread(grouped) < 0.16 < 0.3 < spread(loose)
+
+
 def test_sample_poses_legs_together():
     """together=1 adducts both hips 0-0.15 rad and flexes the right hip and knee as the left
     ones (+-0.15 rad, in range); together=0 leaves the stream as it was; the feet come closer."""

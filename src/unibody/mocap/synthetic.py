@@ -114,6 +114,10 @@ class SyntheticConfig:
             (e.g. pyCGM's 38 extra markers beside Plug-in Gait): a fraction ``extra_prob`` of
             the batches gets 0..``extras`` per frame on vertices whose distance to the nearest
             layout vertex is in ``extra_distance`` (m); their truth is null.
+        extra_clusters, cluster_radius: in a fraction ``extra_clusters`` of those batches the
+            extra markers come as tracking clusters (thigh and shank plates, foot sets, as in
+            pyCGM's files): groups of ``cluster_size`` distinct extra-marker vertices within
+            ``cluster_radius`` m of a random one on the mean rest mesh.
         pose: keyword arguments of :func:`unibody.poses.sample_poses` (default :data:`POSE`).
         spread: m, the Hips are placed uniformly in a square of this half-width (lab floor).
     """
@@ -158,6 +162,9 @@ class SyntheticConfig:
     extras: int = 0
     extra_prob: float = 0.3
     extra_distance: tuple[float, float] = (0.03, float("inf"))
+    extra_clusters: float = 0.0
+    cluster_radius: float = 0.08
+    cluster_size: int = 3
     pose: dict = field(default_factory=lambda: dict(POSE))
     spread: float = 2.0
 
@@ -237,6 +244,11 @@ class SyntheticMocap:
             pos = torch.full((layer.num_vertices,), -1, dtype=torch.long)
             pos[used] = torch.arange(len(used))
             self.extra_pool = pos[pool]  # (P,) indices into `used`
+            near_pool = torch.cdist(mean[pool], mean[pool]) <= config.cluster_radius  # (P, P), self included
+            k = max(int(near_pool.sum(1).max()), 1) if len(pool) else 1
+            order = torch.sort(near_pool.to(torch.int8), dim=1, descending=True, stable=True).indices[:, :k]
+            self.cluster_count = near_pool.sum(1)  # (P,) pool neighbours of each pool vertex
+            self.cluster_members = order  # (P, K) indices into the pool, the first cluster_count valid
             rig = Rig.canonical()
             sv, sj, sw = rig.skin_vertex.long(), rig.skin_joint.long(), rig.skin_weight
             keep = w[sv]
@@ -271,13 +283,15 @@ class SyntheticMocap:
         return self.markers_and_extras(batch, generator, 0)[0]
 
     def markers_and_extras(
-        self, batch: int, generator: torch.Generator, extras: int
+        self, batch: int, generator: torch.Generator, extras: int, *, clusters: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Clean markers (B, M, 3) and up to ``extras`` markers of another protocol (B, extras, 3).
 
         The extra markers sit on random vertices at a distance in ``extra_distance`` from the
         nearest layout vertex of the rest mesh, as many per frame as drawn uniformly from
-        [0, extras]; NaN beyond that count.
+        [0, extras]; NaN beyond that count. With ``clusters``, slots ``c*s .. c*s+s-1``
+        (s = ``cluster_size``) hold distinct vertices within ``cluster_radius`` of one another's
+        centre: a tracking cluster.
         """
         cfg, m = self.config, len(self.layout)
         ident = torch.randint(self.rest.shape[0], (batch,), generator=generator)
@@ -293,6 +307,8 @@ class SyntheticMocap:
         u = self.candidates.gather(1, pick.T).T  # (B, M) indices into `used`
         if extras:
             pick = torch.randint(len(self.extra_pool), (batch, extras), generator=generator)
+            if clusters:
+                pick = self._clusters(pick, generator)
             u = torch.cat([u, self.extra_pool[pick]], dim=1)
         k = u.shape[1]
         x = self.rest[ident[:, None], u]  # (B, K, 3)
@@ -322,14 +338,31 @@ class SyntheticMocap:
             extra = torch.where((torch.arange(extras) >= count)[..., None], float("nan"), extra)
         return out, extra
 
+    def _clusters(self, pick: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """Pool indices (B, E): each run of ``cluster_size`` slots becomes one cluster about the
+        first slot's vertex (distinct members; a centre short of neighbours repeats itself)."""
+        s = self.config.cluster_size
+        b, e = pick.shape
+        centre = pick[:, ::s]  # (B, C)
+        count = self.cluster_count[centre]  # (B, C)
+        members = self.cluster_members[centre]  # (B, C, K)
+        score = torch.rand(members.shape, generator=generator)
+        score = torch.where(torch.arange(members.shape[-1]) < count[..., None], score, -1.0)
+        take = score.topk(min(s, members.shape[-1]), dim=-1).indices  # (B, C, s) distinct slots
+        chosen = members.gather(-1, take)
+        chosen = torch.where(take < count[..., None], chosen, centre[..., None])
+        return chosen.reshape(b, -1)[:, :e]
+
     def sample(self, batch: int, generator: torch.Generator) -> MocapBatch:
         """A corrupted, permuted batch of frames.
 
         With probability ``extra_prob`` the whole batch (one padded size) also carries up to
-        ``extras`` markers of another protocol per frame, labelled null.
+        ``extras`` markers of another protocol per frame, labelled null; a fraction
+        ``extra_clusters`` of those batches has them in tracking clusters.
         """
         cfg = self.config
         with torch.no_grad():
             on = cfg.extras > 0 and float(torch.rand((), generator=generator)) < cfg.extra_prob
-            clean, extra = self.markers_and_extras(batch, generator, cfg.extras if on else 0)
+            grouped = on and cfg.extra_clusters > 0 and float(torch.rand((), generator=generator)) < cfg.extra_clusters
+            clean, extra = self.markers_and_extras(batch, generator, cfg.extras if on else 0, clusters=grouped)
             return corrupt_frames(clean, generator, occlusions=cfg.occlusions, ghosts=cfg.ghosts, extras=extra)
