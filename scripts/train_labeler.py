@@ -60,7 +60,8 @@ def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, id
     cfg = SyntheticConfig(
         identities=identities, pool_seed=pool_seed, subsets=subs, extras=args.extras,
         extra_distance=(args.extra_distance[0], args.extra_distance[1]), stick_prob=args.stick_prob,
-        extra_prob=args.extra_prob, extra_clusters=args.extra_clusters,
+        extra_prob=args.extra_prob, extra_clusters=args.extra_clusters, cluster_size=args.cluster_size,
+        cluster_radius=args.cluster_radius,
         stature_prob=args.stature_prob, bands=HEAD_BANDS if args.head_bands else (),
     )  # fmt: skip
     return SyntheticMocap(layout, cfg)
@@ -108,6 +109,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--extras", type=int, default=0, help="up to this many markers of another protocol per frame")
     p.add_argument("--extra-prob", type=float, default=0.3, help="fraction of batches with --extras")
     p.add_argument("--extra-clusters", type=float, default=0.0, help="of those, fraction in tracking clusters")
+    p.add_argument("--cluster-size", type=int, default=3, help="extra markers per tracking cluster")
+    p.add_argument("--cluster-radius", type=float, default=0.08, help="m, a cluster's radius on the rest mesh")
     p.add_argument("--stick-prob", type=float, default=0.5, help="fraction of samples with wrist bars")
     p.add_argument("--head-bands", action="store_true", help="head markers anywhere around the head (HEAD_BANDS)")
     p.add_argument(
@@ -248,6 +251,8 @@ def main(argv: list[str] | None = None) -> None:
         "extra_distance": list(args.extra_distance),
         "extra_prob": args.extra_prob,
         "extra_clusters": args.extra_clusters,
+        "cluster_size": args.cluster_size,
+        "cluster_radius": args.cluster_radius,
         "stick_prob": args.stick_prob,
         "head_bands": args.head_bands,
         "orient_with": args.orient_with,
