@@ -13,7 +13,7 @@ first stage) and rotated into the rest frame by its torso labels (:mod:`unibody.
 stage).
 
 The shipped weights are two-stage labelers trained in several runs (first stage: cmu41 eleven,
-pig39 eight; second stage: cmu41 two, pig39 two), each starting from the last (``--init``) as
+pig39 eight; second stage: cmu41 two, pig39 three), each starting from the last (``--init``) as
 the synthetic data improved; the exact commands, with the revision of each run, are in each
 weights file's ``meta["recipe"]`` and in benchmarks/README.md:
 
