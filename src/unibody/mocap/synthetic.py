@@ -114,7 +114,7 @@ class SyntheticConfig:
             (e.g. pyCGM's 38 extra markers beside Plug-in Gait): a fraction ``extra_prob`` of
             the batches gets 0..``extras`` per frame on vertices whose distance to the nearest
             layout vertex is in ``extra_distance`` (m); their truth is null.
-        extra_clusters, cluster_radius: in a fraction ``extra_clusters`` of those batches the
+        extra_clusters, cluster_size, cluster_radius: in a fraction ``extra_clusters`` of those batches the
             extra markers come as tracking clusters (thigh and shank plates, foot sets, as in
             pyCGM's files): groups of ``cluster_size`` distinct extra-marker vertices within
             ``cluster_radius`` m of a random one on the mean rest mesh.
@@ -167,6 +167,14 @@ class SyntheticConfig:
     cluster_size: int = 3
     pose: dict = field(default_factory=lambda: dict(POSE))
     spread: float = 2.0
+
+
+def _true_first(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per row of a (R, C) bool mask: the columns where it is True, in order, padded to the
+    longest row (R, K >= 1; the first ``count`` valid), and ``count`` (R,)."""
+    count = mask.sum(1)
+    k = max(int(count.max()), 1) if len(mask) else 1
+    return torch.sort(mask.to(torch.int8), dim=1, descending=True, stable=True).indices[:, :k], count
 
 
 class SyntheticMocap:
@@ -233,10 +241,7 @@ class SyntheticMocap:
             taken[pool] = True
             used = taken.nonzero().squeeze(1)  # (U,) vertex ids any marker may take
             local = near[:, used]  # (M, U)
-            self.num_candidates = local.sum(1)  # (M,)
-            c = int(self.num_candidates.max())
-            order = torch.sort(local.to(torch.int8), dim=1, descending=True, stable=True).indices[:, :c]
-            self.candidates = order  # (M, C): indices into `used`, the first num_candidates valid
+            self.candidates, self.num_candidates = _true_first(local)  # (M, C) into `used`; (M,)
             self.used = used
             self.weights = layer.skin_weight.new_zeros(len(used), layer.num_joints)
             w = torch.zeros(layer.num_vertices, dtype=torch.bool)
@@ -245,10 +250,7 @@ class SyntheticMocap:
             pos[used] = torch.arange(len(used))
             self.extra_pool = pos[pool]  # (P,) indices into `used`
             near_pool = torch.cdist(mean[pool], mean[pool]) <= config.cluster_radius  # (P, P), self included
-            k = max(int(near_pool.sum(1).max()), 1) if len(pool) else 1
-            order = torch.sort(near_pool.to(torch.int8), dim=1, descending=True, stable=True).indices[:, :k]
-            self.cluster_count = near_pool.sum(1)  # (P,) pool neighbours of each pool vertex
-            self.cluster_members = order  # (P, K) indices into the pool, the first cluster_count valid
+            self.cluster_members, self.cluster_count = _true_first(near_pool)  # (P, K) into the pool; (P,)
             rig = Rig.canonical()
             sv, sj, sw = rig.skin_vertex.long(), rig.skin_joint.long(), rig.skin_weight
             keep = w[sv]
