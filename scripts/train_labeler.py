@@ -82,6 +82,24 @@ def accuracy(model: Labeler, batches: list[MocapBatch]) -> tuple[float, float]:
     return right / max(total, 1), right_m / max(total_m, 1)
 
 
+def init_from(model: Labeler, start: dict, start_names: tuple[str, ...], source: str) -> None:
+    """Copy a labeler's weights (not its first stage) into ``model``, whose labels include ``start_names``.
+
+    The score head's output rows follow the labels: rows of shared labels are copied, those
+    of new labels (a session layout's extra markers) keep their fresh initialisation.
+    """
+    own = model.state_dict()
+    keys = [k for k in own if not k.startswith("orienter.") and k not in ("template", "torso")]
+    if missing := [k for k in keys if k not in start]:
+        raise SystemExit(f"--init: {source} lacks {missing[:3]}")
+    out, name = model.head[-1], f"head.{len(model.head) - 1}"
+    rows = torch.tensor([model.label_names.index(x) for x in start_names])
+    weight, bias = out.weight.detach().clone(), out.bias.detach().clone()
+    weight[rows], bias[rows] = start[f"{name}.weight"], start[f"{name}.bias"]
+    state = {k: start[k] for k in keys} | {f"{name}.weight": weight, f"{name}.bias": bias}
+    model.load_state_dict(state, strict=False)
+
+
 def git_rev() -> str:
     try:
         return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
@@ -144,10 +162,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.orient_with:
         orienter = load_labeler(args.orient_with)
         orienter = orienter.orienter or orienter  # a two-stage labeler lends its first stage
-        if orienter.label_names != layout.labels:
-            raise SystemExit(f"--orient-with: {args.orient_with} labels {orienter.label_names}, not {layout.name}")
+        if not set(orienter.label_names) <= set(layout.labels):
+            raise SystemExit(f"--orient-with: {args.orient_with} labels {orienter.label_names}, not in {layout.name}")
         orienter.config["refine"] = args.orienter_refine
-        template, torso = torso_template(layout)
+        template, torso = torso_template(layout.subset(orienter.label_names))
         orient = {"orienter": orienter, "template": template, "torso": torso}
     model = Labeler(
         len(layout),
@@ -161,16 +179,13 @@ def main(argv: list[str] | None = None) -> None:
     )
     if args.init:
         if args.init.endswith("checkpoint.pt"):  # another run's training checkpoint
-            start = torch.load(args.init, weights_only=True)["model"]
+            start, start_names = torch.load(args.init, weights_only=True)["model"], layout.labels
         else:
             start_model = load_labeler(args.init)
-            if start_model.label_names != layout.labels:
-                raise SystemExit(f"--init: {args.init} labels {start_model.label_names} differ from {layout.name}")
-            start = start_model.state_dict()
-        own = [k for k in model.state_dict() if not k.startswith("orienter.") and k not in ("template", "torso")]
-        if missing := [k for k in own if k not in start]:
-            raise SystemExit(f"--init: {args.init} lacks {missing[:3]}")
-        model.load_state_dict({k: start[k] for k in own}, strict=False)
+            start, start_names = start_model.state_dict(), start_model.label_names
+        if not set(start_names) <= set(layout.labels):
+            raise SystemExit(f"--init: {args.init} labels {start_names} are not all in {layout.name}")
+        init_from(model, start, start_names, args.init)
     trainable = [x for x in model.parameters() if x.requires_grad]
     opt = torch.optim.Adam(trainable, lr=args.lr, weight_decay=args.weight_decay)
 

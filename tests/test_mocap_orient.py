@@ -110,11 +110,34 @@ def test_two_stage_labeler_saves_loads_and_keeps_its_first_stage_frozen(tmp_path
     assert double(pts.double(), mask).dtype == torch.float64
 
 
+def test_second_stage_may_name_more_labels_than_its_orienter(tmp_path):
+    """A session layout's labeler (general labels + extra markers) oriented by the general first stage."""
+    torch.manual_seed(1)
+    names = ("A", "B", "C", "D", "E", "F")
+    first = Labeler(6, label_names=names, width=16, layers=1, heads=2)
+    template, torso = torch.randn(6, 3), torch.arange(6) < 4
+    session = ("X01", *names[:3], "X02", *names[3:])  # any order
+    model = Labeler(8, label_names=session, width=16, layers=1, heads=2, orienter=first, template=template,
+                    torso=torso).eval()  # fmt: skip
+    pts, mask = torch.randn(2, 9, 3), torch.ones(2, 9, dtype=torch.bool)
+    rot, centre = model.orient(pts, mask)
+    assert rot.shape == (2, 3, 3) and centre.shape == (2, 3)
+    assert model(pts, mask).shape == (2, 10, 9)
+    model.save(tmp_path / "session.pt")
+    loaded = Labeler.load(tmp_path / "session.pt").eval()
+    assert loaded.label_names == session and loaded.orienter.label_names == names
+    assert loaded.config == model.config
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(pts, mask), model(pts, mask))
+
+
 def test_two_stage_labeler_errors():
     first = Labeler(8, width=16, layers=1, heads=2)
     with pytest.raises(ValueError, match="template, torso"):
         Labeler(8, orienter=first)
-    with pytest.raises(ValueError, match="orienter: expected a labeler of the same labels"):
+    with pytest.raises(ValueError, match="orienter: expected a labeler of these labels"):
+        Labeler(8, label_names="abcdefgh", orienter=first, template=torch.zeros(8, 3), torso=torch.ones(8, dtype=bool))
+    with pytest.raises(ValueError, match="template: expected shape"):  # the orienter's 8 labels, not these 9
         Labeler(9, orienter=first, template=torch.zeros(9, 3), torso=torch.ones(9, dtype=torch.bool))
     with pytest.raises(ValueError, match="torso: expected a bool mask of at least 4"):
         Labeler(8, orienter=first, template=torch.zeros(8, 3), torso=torch.arange(8) < 2)
@@ -141,3 +164,15 @@ def test_training_script_trains_the_second_stage_only(tmp_path):
     assert two.meta["orient_with"].endswith("labeler.pt") and two.config["orienter"]["refine"] == 1
     template, torso = torso_template(MarkerLayout.load("cmu41"))
     assert torch.equal(two.template, template) and torch.equal(two.torso, torso)
+    # a session layout: cmu41 and two more markers; shared labels keep their score rows
+    cmu = MarkerLayout.load("cmu41")
+    session = MarkerLayout("session", (*cmu.labels, "X01", "X02"), torch.cat([cmu.vertices, torch.tensor([100, 200])]),
+                           torch.cat([cmu.distance, torch.tensor([0.01, 0.01])]))  # fmt: skip
+    session.save(tmp_path / "session.json")
+    args = ["--layout", str(tmp_path / "session.json"), "--orient-with", weights, "--init", weights]
+    mod.main([*tiny[2:], *args, "--steps", "0", "--out", str(tmp_path / "session")])
+    three = Labeler.load(tmp_path / "session" / "labeler.pt")
+    assert three.label_names == session.labels and three.orienter.label_names == cmu.labels
+    assert torch.equal(three.head[-1].weight[: len(cmu)], first.head[-1].weight)
+    assert torch.equal(three.blocks[0].qkv.weight, first.blocks[0].qkv.weight)
+    assert torch.equal(three.template, template)

@@ -167,3 +167,23 @@ def test_label_sequence_per_frame_keeps_unlabelled_points():
     n_in, n_out = int(seq.visible.sum()), int(out.visible.sum())
     assert n_in == n_out  # no point is lost or duplicated
     assert out.points.shape[1] >= len(layout)
+
+
+def test_cli_layout_adds_the_sessions_other_markers(tmp_path):
+    """`unibody mocap layout`: the base layout's markers fitted, each other point of the frame named."""
+    pig, cmu = MarkerLayout.load("pig39"), MarkerLayout.load("cmu41")
+    others = [x for x in cmu.labels if x not in pig.labels][:4]  # RBAC, LFWT, RFWT, LBWT: beside PiG markers
+    both = MarkerLayout("both", (*pig.labels, *others), torch.cat([pig.vertices, cmu.subset(others).vertices]),
+                        torch.cat([pig.distance, cmu.subset(others).distance]))  # fmt: skip
+    markers, _ = smooth_sequence(both, frames=3)
+    lab = unibody_to_lab(markers.numpy(), up="z")
+    names = (*pig.labels, *(f"*{i}" for i in range(len(others))))
+    write_c3d(tmp_path / "session.c3d", MarkerSequence(lab, names, ("",) * len(names), 100.0))
+    main(["mocap", "layout", str(tmp_path / "session.c3d"), "--frame", "1", "--out", str(tmp_path / "session.json")])
+    session = MarkerLayout.load(tmp_path / "session.json")
+    assert session.name == "session" and session.labels == (*pig.labels, "X01", "X02", "X03", "X04")
+    rest = BodyLayer.from_pca(num_components=16).identity(torch.zeros(1, 16))[0]
+    err = (rest[session.vertices[len(pig) :]] - rest[cmu.subset(others).vertices]).norm(dim=-1)
+    assert float(err.max()) < 0.03, err
+    with pytest.raises(ValueError, match="frame: expected 0 <= frame < 3"):
+        main(["mocap", "layout", str(tmp_path / "session.c3d"), "--frame", "3", "--out", str(tmp_path / "x.json")])

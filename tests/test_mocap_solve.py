@@ -186,6 +186,27 @@ def test_derive_layout_from_one_frame(layer, layout):
     assert float(derived.distance.min()) > -0.005 and float(derived.distance.max()) < 0.03
 
 
+def test_derive_layout_names_the_frames_unlabelled_points(layer, layout):
+    """Markers of another protocol in the frame become new markers where they sit on the body."""
+    points, _, rest = _synthetic(layer, layout, seed=2)
+    hidden = list(range(1, 41, 5))  # RFHD, CLAV, LELB, RSHO, RWRB, RBWT, LHEE, RSHN: beside labelled ones
+    shown = [i for i in range(len(layout)) if i not in hidden]
+    known, extra = layout.subset([layout.labels[i] for i in shown]), layout.subset([layout.labels[i] for i in hidden])
+    frame = points[7]
+    unlabelled = torch.cat([frame[hidden], torch.full((1, 3), float("nan"))])  # a missing row is skipped
+    derived = derive_layout(frame[shown], known.labels, name="session", initial=known, unlabelled=unlabelled)
+    n = len(shown)
+    assert derived.labels == (*known.labels, *(f"X{k:02d}" for k in range(1, len(hidden) + 1)))
+    err = (rest[derived.vertices[n:]] - rest[extra.vertices]).norm(dim=-1)
+    assert float(err.mean()) <= 0.012 and float(err.max()) <= 0.03, err  # measured: 0.9 cm mean, 2.4 cm max
+    assert float((derived.distance[n:] - extra.distance).abs().max()) < 0.008  # measured: 6.2 mm
+    clash = MarkerLayout("clash", ("X02", *known.labels[1:]), known.vertices, known.distance)
+    with pytest.raises(ValueError, match="prefix: 'X' gives names"):
+        derive_layout(frame[shown], clash.labels, name="x", initial=clash, unlabelled=frame[hidden])
+    with pytest.raises(ValueError, match="unlabelled: expected shape"):
+        derive_layout(frame[shown], known.labels, name="x", initial=known, unlabelled=frame[hidden, :2])
+
+
 def test_jacobians_match_finite_differences(layout):
     """Marker and pose-prior Jacobians of the LM against central differences of the update."""
     body = MarkerBody(K, torch.device("cpu"))

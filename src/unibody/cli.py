@@ -264,6 +264,22 @@ def run_mocap_solve(src: Path, out: Path, layout_name: str, up: str, png: Path |
         print(f"wrote {png} (frame {f})")
 
 
+def run_mocap_layout(src: Path, out: Path, base: str, frame: int, up: str, prefix: str) -> None:
+    from .mocap.c3d import read_markers
+    from .mocap.layout import MarkerLayout
+    from .mocap.pipeline import frame_layout
+
+    seq = read_markers(src)
+    layout = MarkerLayout.load(base)
+    t = time.perf_counter()
+    session = frame_layout(seq, layout, frame=frame, name=out.stem, up=up, prefix=prefix)
+    session.save(out)
+    print(
+        f"fitted frame {frame} in {time.perf_counter() - t:.1f} s: {len(layout)} {layout.name} markers and "
+        f"{len(session) - len(layout)} more ({prefix}01...); wrote {out}"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="unibody", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -296,6 +312,13 @@ def main(argv: list[str] | None = None) -> int:
     sol.add_argument("--layout", default="cmu41", help="shipped layout (pig35 | pig39 | cmu41 | superset) or JSON")
     sol.add_argument("--up", default="z", choices=("z", "y"))
     sol.add_argument("--png", type=Path, help="also render the middle frame with its markers")
+    lay = msub.add_parser("layout", help="one labelled frame (.c3d/.npz) -> the session's marker layout (JSON)")
+    lay.add_argument("markers", type=Path)
+    lay.add_argument("--out", type=Path, required=True)
+    lay.add_argument("--base", default="pig39", help="layout whose labels the file uses (shipped name or JSON)")
+    lay.add_argument("--frame", type=int, default=0)
+    lay.add_argument("--up", default="z", choices=("z", "y"))
+    lay.add_argument("--prefix", default="X", help="name prefix of the file's other markers")
     args = parser.parse_args(argv)
     with torch.no_grad():  # a context, not a global switch: callers (tests) keep their state
         if args.command == "demo":
@@ -310,6 +333,8 @@ def main(argv: list[str] | None = None) -> int:
             run_mocap_label(args.markers, args.out, args.model, args.up, not args.per_frame)
         elif args.command == "mocap" and args.mocap_command == "solve":
             run_mocap_solve(args.markers, args.out, args.layout, args.up, args.png)
+        elif args.command == "mocap" and args.mocap_command == "layout":
+            run_mocap_layout(args.markers, args.out, args.base, args.frame, args.up, args.prefix)
     return 0
 
 

@@ -108,11 +108,13 @@ class Labeler(nn.Module):
             each frame on the midrange of all its points, each further pass on the ``centre``
             rule applied to the points the last pass labelled as markers. Extra markers or
             ghosts crowded on one part of the body then no longer move the frame's centre.
-        orienter: a labeler of the same labels (without an orienter of its own) whose labels
-            orient every frame, in training too; its weights are frozen and saved with these.
-        template, torso: (L, 3) rest-frame marker positions and (L,) bool torso markers that
-            the orienter's labels are fitted to (:func:`~unibody.mocap.orient.torso_template`);
-            needed with ``orienter``.
+        orienter: a labeler (without an orienter of its own) whose labels orient every frame,
+            in training too; its weights are frozen and saved with these. Its Lo labels are
+            these labels or some of them (a session layout's model may orient with the
+            general layout's first stage: label priming, paper §4.5).
+        template, torso: (Lo, 3) rest-frame positions and (Lo,) bool torso flags of the
+            orienter's markers, which its labels are fitted to
+            (:func:`~unibody.mocap.orient.torso_template`); needed with ``orienter``.
 
     Attributes:
         meta: free-form training record (command, seed, steps, metrics), saved with the weights.
@@ -157,16 +159,20 @@ class Labeler(nn.Module):
         self.bin_score = nn.Parameter(torch.tensor(1.0))
         self.orienter = orienter
         if orienter is not None:
-            if orienter.orienter is not None or orienter.label_names != names:
-                raise ValueError("orienter: expected a labeler of the same labels without an orienter of its own")
+            if orienter.orienter is not None or not set(orienter.label_names) <= set(names):
+                raise ValueError(
+                    "orienter: expected a labeler of these labels (or some of them) without an orienter of its own"
+                )
             if template is None or torso is None:
                 raise ValueError("template, torso: needed with an orienter (see unibody.mocap.orient.torso_template)")
-            check_shape(template, f"{num_labels} 3", name="template")
-            check_shape(torso, f"{num_labels}", name="torso")
+            check_shape(template, f"{orienter.num_labels} 3", name="template")
+            check_shape(torso, f"{orienter.num_labels}", name="torso")
             if torso.dtype != torch.bool or int(torso.sum()) < 4:
                 raise ValueError(f"torso: expected a bool mask of at least 4 markers, got {torso.dtype}, {torso}")
             orienter.requires_grad_(False)
             self.config["orienter"] = dict(orienter.config)
+            if orienter.label_names != names:
+                self.config["orienter"]["label_names"] = list(orienter.label_names)
             self.register_buffer("template", template.detach().to(self.bin_score.dtype).clone())
             self.register_buffer("torso", torso.clone())
 
@@ -254,7 +260,7 @@ class Labeler(nn.Module):
             raise ValueError("orient: this labeler has no orienter")
         points = torch.where(mask[..., None], points, 0.0)  # padding may hold anything
         labels, confidence = predict(self.orienter(points, mask), mask)
-        null = self.num_labels
+        null = self.orienter.num_labels
         known = labels.clamp_max(null - 1)
         weights = torch.where(mask & (labels != null) & self.torso[known], confidence, 0.0)
         rot = fit_rotation(points, weights, self.template[known])
@@ -285,9 +291,10 @@ class Labeler(nn.Module):
         cfg = payload["config"]
         names = payload["label_names"]
         if "orienter" in cfg:  # placeholders, filled by the state dict
-            ocfg = cfg.pop("orienter")
-            n = cfg["num_labels"]
-            cfg.update(orienter=cls(ocfg.pop("num_labels"), label_names=names, **ocfg), template=torch.zeros(n, 3),
+            ocfg = dict(cfg.pop("orienter"))
+            n = ocfg.pop("num_labels")
+            onames = ocfg.pop("label_names", names)
+            cfg.update(orienter=cls(n, label_names=onames, **ocfg), template=torch.zeros(n, 3),
                        torso=torch.arange(n) < 4)  # fmt: skip
         model = cls(cfg.pop("num_labels"), label_names=names, **cfg)
         model.load_state_dict(payload["state_dict"])

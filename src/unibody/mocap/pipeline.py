@@ -4,11 +4,17 @@
     model = load_labeler("cmu41")                           # shipped weights, or a path
     labelled = label_sequence(seq, model)                   # MarkerSequence with the model's labels
     result = solve_sequence(labelled, MarkerLayout.load("cmu41"))
+    session = frame_layout(seq, MarkerLayout.load("pig39"), frame=0, name="session")  # + its extra markers
 
 Labelled output: one column per model label (NaN where the label is absent in a frame),
 then the points left unlabelled as ``*0``, ``*1``, ... columns (one per input column that
 kept any). With ``tracklets`` each input column (a hardware tracklet) takes the majority
 label of its frames (paper 003 §4.5), else every frame is labelled on its own.
+
+A session whose markers go beyond a shipped layout (tracking clusters, foot sets) gets its own
+layout from one labelled frame (:func:`frame_layout`, paper §4.5: one labelled frame per layout
+variation); a labeler trained on it (``scripts/train_labeler.py --layout session.json --init
+pig39 --orient-with pig39``) names those markers instead of confusing them with the layout's.
 """
 
 from __future__ import annotations
@@ -23,10 +29,10 @@ import torch
 from .c3d import MarkerSequence
 from .labeler import Labeler, label_frames
 from .layout import MarkerLayout
-from .solve import SolveConfig, SolveResult, lab_to_unibody, solve_markers
+from .solve import SolveConfig, SolveResult, derive_layout, lab_to_unibody, solve_markers
 from .tracklets import label_tracklets
 
-__all__ = ["available_labelers", "label_sequence", "load_labeler", "render_solution", "solve_sequence"]
+__all__ = ["available_labelers", "frame_layout", "label_sequence", "load_labeler", "render_solution", "solve_sequence"]
 
 
 def _weights_dir():
@@ -103,6 +109,39 @@ def solve_sequence(
     lay = layout.subset(present)
     pts = torch.as_tensor(lab_to_unibody(seq.select(present).points, up=up), dtype=torch.float64)
     return solve_markers(pts, lay, config=config, fps=seq.rate, progress=progress)
+
+
+def frame_layout(
+    seq: MarkerSequence,
+    base: MarkerLayout,
+    *,
+    frame: int,
+    name: str,
+    up: str = "z",
+    prefix: str = "X",
+    config: SolveConfig | None = None,
+) -> MarkerLayout:
+    """A session's layout from one frame: ``base``'s markers fitted, and every other point of it.
+
+    The file's points labelled with ``base`` labels are fitted (:func:`derive_layout`, starting
+    from ``base``'s placement; labels absent or missing in that frame keep it); each other
+    point visible in that frame (unlabelled ``*`` points, other protocols' markers) becomes a
+    new marker ``{prefix}01``, ... in the order of the file's columns. Labels: ``base``'s, then
+    the new ones.
+    """
+    if not 0 <= frame < seq.num_frames:
+        raise ValueError(f"frame: expected 0 <= frame < {seq.num_frames}, got {frame}")
+    pts = lab_to_unibody(seq.points[frame], up=up)
+    idx = {x: i for i, x in enumerate(seq.labels)}
+    known = np.stack([pts[idx[x]] if x in idx else np.full(3, np.nan) for x in base.labels])
+    if int(np.isfinite(known).all(-1).sum()) < 6:
+        raise ValueError(
+            f"seq: frame {frame} has {int(np.isfinite(known).all(-1).sum())} of {base.name}'s labels; need 6 or more"
+        )
+    others = np.stack([pts[i] for i, x in enumerate(seq.labels) if x not in set(base.labels)] or [np.full(3, np.nan)])
+    extra = torch.as_tensor(others) if np.isfinite(others).all(-1).any() else None
+    return derive_layout(torch.as_tensor(known), base.labels, name=name, config=config, initial=base,
+                         unlabelled=extra, prefix=prefix)  # fmt: skip
 
 
 def render_solution(
