@@ -1,6 +1,7 @@
 """Mocap labeling and body solve on real, labelled C3D files (paper 003 protocol; evaluation only).
 
     OMP_NUM_THREADS=2 python benchmarks/mocap.py [--evaldata ../shared/evaldata] [--sections label speed solve]
+        [--session pycgm=build/s1_pycgm/labeler.pt]
 
 Labels are hidden from the labeler and used only to score it. Files: CMU 85_02, 85_12, 135_02
 (CMU 41 layout, ``cmu41`` model); BTKData Plug-in Gait walking / static (35 markers), pyCGM
@@ -14,6 +15,10 @@ points in a file are real ghosts (truth: null).
 - **tracklet**: the sequence keeps its columns; the same per-frame occlusions and ghosts
   (ghosts in extra columns), 50 broken trajectories (paper §4.4), per-frame labels, then the
   majority label per column.
+- **session layouts** (``--session pycgm=WEIGHTS``, paper §4.5): the files whose name holds
+  ``pycgm`` are labelled again by a labeler of their session's layout (``unibody mocap layout``
+  on one frame: the model's markers and the session's other markers, named X01...); its extra
+  labels count as null, so its rows score the same labels as the model's.
 - Scores: accuracy over all real points and macro F1 over the labels present incl. null.
 - **speed**: labeling frames/s at batch 1 and 256 (forward + decoding).
 - **solve**: the body solve on the files' own labels: mean / median marker residual,
@@ -144,55 +149,92 @@ def fmt(scores: dict) -> str:
     return f"{100 * scores['accuracy']:6.2f} {100 * scores['f1']:6.2f}"
 
 
-def label_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
+def score_file(model: Labeler, seq: MarkerSequence, seed: int, base: int, frames: list | None = None) -> dict:
+    """Predicted and true labels of the no-noise, per-frame C+G, tracklet rows of one file.
+
+    Labels ``base`` and above (a session model's extra markers, null) are scored as null (``base``).
+    """
+    marked, ghosts = split(seq, model.label_names)
+    gen = torch.Generator().manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    clean = per_frame(model, marked, ghosts, gen, occlusions=(0, 0), ghosts=(0, 0))
+    noisy = per_frame(model, marked, ghosts, gen, frames)
+    tr = tracklet(model, marked, ghosts, gen, rng)
+    rows = {"clean": clean, "noisy": noisy, "tr_frame": tr["frame"], "tracklet": tr["tracklet"]}
+    return {k: (p.clamp_max(base), t.clamp_max(base)) for k, (p, t) in rows.items()}
+
+
+def row(name: str, model: str, frames, scores: dict) -> str:
+    return (
+        f"| {name} | {model} | {frames} | {fmt(scores['clean'])} | {fmt(scores['noisy'])} | "
+        f"{fmt(scores['tr_frame'])} | {fmt(scores['tracklet'])} |"
+    )
+
+
+def pool(files: list[dict], null: int) -> dict:
+    return {k: labeling_scores(*map(torch.cat, zip(*(f[k] for f in files), strict=True)), null=null) for k in files[0]}
+
+
+def session_rows(root: Path, models: dict[str, Labeler], sessions: dict[str, Labeler], per_file: dict, seed: int):
+    """The files of each session labelled by its session model, and the pooled rows with them."""
+    print("\n## Session layouts (paper §4.5): the same rows, the session's files by its own labeler")
+    print(
+        "| file | model | frames | no noise | per-frame C+G | tracklet: per-frame | tracklet |\n"
+        "|---|---|---|---|---|---|---|"
+    )
+    for key, smodel in sessions.items():
+        for name, files in FILES.items():
+            base = models[name]
+            if smodel.label_names[: base.num_labels] != base.label_names:
+                continue
+            pooled = []
+            for rel in files:
+                if key not in Path(rel).stem:
+                    pooled.append(per_file[rel])
+                    continue
+                seq = read(root / rel)
+                rows = score_file(smodel, seq, seed, base.num_labels)
+                pooled.append(rows)
+                scores = {k: labeling_scores(*v, null=base.num_labels) for k, v in rows.items()}
+                print(row(Path(rel).stem, f"{key} ({smodel.num_labels})", seq.num_frames, scores), flush=True)
+            print(row(f"**all {name} files, {key} by its session model**", name, "", pool(pooled, base.num_labels)))
+
+
+def label_section(root: Path, models: dict[str, Labeler], seed: int, sessions: dict[str, Labeler]) -> None:
     print("\n## Labeling (accuracy / macro F1, %; labels hidden)")
     print(
         "| file | model | frames | no noise | per-frame C+G | tracklet: per-frame | tracklet |\n"
         "|---|---|---|---|---|---|---|"
     )
     table2: dict[str, list] = {}
-    pooled: dict[str, dict[str, list]] = {}
     postures: dict[str, list] = {}
+    per_file: dict[str, dict] = {}
     for name, files in FILES.items():
         model = models[name]
         for rel in files:
             seq = read(root / rel)
             marked, ghosts = split(seq, model.label_names)
-            gen = torch.Generator().manual_seed(seed)
-            rng = np.random.default_rng(seed)
-            clean = per_frame(model, marked, ghosts, gen, occlusions=(0, 0), ghosts=(0, 0))
             frames: list = []
-            noisy = per_frame(model, marked, ghosts, gen, frames)
+            rows = per_file[rel] = score_file(model, seq, seed, model.num_labels, frames)
+            noisy = rows["noisy"]
+            gen = torch.Generator().manual_seed(seed + 1)
             bins = torch.from_numpy(posture_bin(trunk_up(marked, model.label_names)))[torch.cat(frames)]
             for k in range(len(UPRIGHT_BINS)):
                 postures.setdefault(name, [[] for _ in UPRIGHT_BINS])[k].append(
                     (noisy[0][bins == k], noisy[1][bins == k])
                 )
-            tr = tracklet(model, marked, ghosts, gen, rng)
-            rows = {"clean": clean, "noisy": noisy, "tr_frame": tr["frame"], "tracklet": tr["tracklet"]}
-            for key, val in rows.items():
-                pooled.setdefault(name, {}).setdefault(key, []).append(val)
             s = {k: labeling_scores(*v, null=model.num_labels) for k, v in rows.items()}
-            print(
-                f"| {Path(rel).stem} | {name} | {len(marked)} | {fmt(s['clean'])} | {fmt(s['noisy'])} | "
-                f"{fmt(s['tr_frame'])} | {fmt(s['tracklet'])} |",
-                flush=True,
-            )
+            print(row(Path(rel).stem, name, len(marked), s), flush=True)
             for k in range(6):
                 table2.setdefault(name, [[] for _ in range(7)])
                 table2[name][k].append(
                     per_frame(model, marked, ghosts, gen, occlusions=(k, k), ghosts=(0, 0), exact=True)
                 )
             table2[name][6].append(per_frame(model, marked, ghosts, gen, occlusions=(5, 5), ghosts=(3, 3), exact=True))
-    for name, rows in pooled.items():
-        s = {
-            k: labeling_scores(*map(torch.cat, zip(*v, strict=True)), null=models[name].num_labels)
-            for k, v in rows.items()
-        }
-        print(
-            f"| **all {name} files** | {name} | | {fmt(s['clean'])} | {fmt(s['noisy'])} | "
-            f"{fmt(s['tr_frame'])} | {fmt(s['tracklet'])} |"
-        )
+    for name, files in FILES.items():
+        print(row(f"**all {name} files**", name, "", pool([per_file[rel] for rel in files], models[name].num_labels)))
+    if sessions:
+        session_rows(root, models, sessions, per_file, seed)
     print("\n## Per-frame accuracy / F1 (%) by exact number of occlusions (paper Table 2), pooled files")
     print("| model | 0 | 1 | 2 | 3 | 4 | 5 | 5+G |\n|---|---|---|---|---|---|---|---|")
     for name, cols in table2.items():
@@ -266,6 +308,8 @@ def main() -> None:
     p.add_argument("--png", type=Path, default=Path("benchmarks/mocap_solve.png"))
     p.add_argument("--cmu41", default="cmu41", help="labeler weights (name or path)")
     p.add_argument("--pig39", default="pig39", help="labeler weights (name or path)")
+    p.add_argument("--session", nargs="*", default=[], metavar="KEY=WEIGHTS",
+                   help="the files whose name holds KEY also by this session-layout labeler")  # fmt: skip
     args = p.parse_args()
     if not args.evaldata.is_dir():
         raise SystemExit(f"--evaldata: {args.evaldata} is not a folder")
@@ -275,11 +319,12 @@ def main() -> None:
         global MAX_FRAMES
         MAX_FRAMES = 300
     models = {"cmu41": load_labeler(args.cmu41), "pig39": load_labeler(args.pig39)}
-    for m in models.values():
+    sessions = {k: load_labeler(w) for k, _, w in (x.partition("=") for x in args.session)}
+    for m in (*models.values(), *sessions.values()):
         m.eval()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
     if "label" in args.sections:
-        label_section(args.evaldata, models, args.seed)
+        label_section(args.evaldata, models, args.seed, sessions)
     if "speed" in args.sections:
         speed_section(models)
     if "solve" in args.sections:

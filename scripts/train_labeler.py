@@ -10,7 +10,9 @@ The third trains the second stage of a two-stage labeler: frames are first label
 ``--orient-with`` labeler (frozen, saved inside the new weights; of a two-stage labeler, its
 first stage) and rotated into the rest frame by its torso labels (:mod:`unibody.mocap.orient`);
 ``--init`` starts the new network from a labeler's weights (of a two-stage one, its second
-stage).
+stage). Both may know fewer labels than ``--layout``: a session layout from
+``unibody mocap layout`` (the shipped layout and the session's other markers, paper §4.5)
+trains from the shipped weights, its new labels' score rows starting fresh.
 
 The shipped weights are two-stage labelers trained in several runs (first stage: cmu41 eleven,
 pig39 eight; second stage: cmu41 two, pig39 three), each starting from the last (``--init``) as
