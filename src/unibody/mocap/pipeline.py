@@ -134,11 +134,9 @@ def frame_layout(
     pts = lab_to_unibody(seq.points[frame], up=up)
     idx = {x: i for i, x in enumerate(seq.labels)}
     known = np.stack([pts[idx[x]] if x in idx else np.full(3, np.nan) for x in base.labels])
-    if int(np.isfinite(known).all(-1).sum()) < 6:
-        raise ValueError(
-            f"seq: frame {frame} has {int(np.isfinite(known).all(-1).sum())} of {base.name}'s labels; need 6 or more"
-        )
-    others = np.stack([pts[i] for i, x in enumerate(seq.labels) if x not in set(base.labels)] or [np.full(3, np.nan)])
+    if (seen := int(np.isfinite(known).all(-1).sum())) < 6:
+        raise ValueError(f"seq: frame {frame} has {seen} of {base.name}'s labels; need 6 or more")
+    others = np.stack([pts[i] for i, x in enumerate(seq.labels) if x not in base.labels] or [np.full(3, np.nan)])
     extra = torch.as_tensor(others) if np.isfinite(others).all(-1).any() else None
     return derive_layout(torch.as_tensor(known), base.labels, name=name, config=config, initial=base,
                          unlabelled=extra, prefix=prefix)  # fmt: skip
