@@ -136,8 +136,9 @@ def frame_layout(
     known = np.stack([pts[idx[x]] if x in idx else np.full(3, np.nan) for x in base.labels])
     if (seen := int(np.isfinite(known).all(-1).sum())) < 6:
         raise ValueError(f"seq: frame {frame} has {seen} of {base.name}'s labels; need 6 or more")
-    others = np.stack([pts[i] for i, x in enumerate(seq.labels) if x not in base.labels] or [np.full(3, np.nan)])
-    extra = torch.as_tensor(others) if np.isfinite(others).all(-1).any() else None
+    others = np.array([pts[i] for i, x in enumerate(seq.labels) if x not in base.labels]).reshape(-1, 3)
+    others = others[np.isfinite(others).all(-1)]
+    extra = torch.as_tensor(others) if len(others) else None
     return derive_layout(torch.as_tensor(known), base.labels, name=name, config=config, initial=base,
                          unlabelled=extra, prefix=prefix)  # fmt: skip
 

@@ -440,9 +440,5 @@ def _extend(body: MarkerBody, s1: Stage1Result, extra, anchors, distance) -> tup
     every = torch.arange(rest.shape[1], device=rest.device)
     posed, *_ = body.markers(s1.ident, every, rest, s1.local[:1], s1.transl[:1], False)
     vertex = torch.cdist(extra, posed[0]).argmin(1)
-    # the same vertex posed 1 cm along its rest normal gives the posed normal
-    off, *_ = body.markers(s1.ident, vertex, rest[:, vertex] + 0.01 * body.normals(rest, vertex), s1.local[:1],
-                           s1.transl[:1], False)  # fmt: skip
-    normal = (off[0] - posed[0, vertex]) / 0.01
-    signed = ((extra - posed[0, vertex]) * normal).sum(-1).clamp(0.0, 0.05)
+    signed = ((extra - posed[0, vertex]) * body.normals(posed, vertex)[0]).sum(-1).clamp(0.0, 0.05)
     return torch.cat([anchors, vertex]), torch.cat([distance, signed])
