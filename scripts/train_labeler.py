@@ -12,7 +12,8 @@ first stage) and rotated into the rest frame by its torso labels (:mod:`unibody.
 ``--init`` starts the new network from a labeler's weights (of a two-stage one, its second
 stage). Both may know fewer labels than ``--layout``: a session layout from
 ``unibody mocap layout`` (the shipped layout and the session's other markers, paper §4.5)
-trains from the shipped weights, its new labels' score rows starting fresh.
+trains from the shipped weights, its new labels' score rows starting fresh; ``--fitted`` then
+keeps every marker near its fitted place instead of the placement guides' slides.
 
 The shipped weights are two-stage labelers trained in several runs (first stage: cmu41 eleven,
 pig39 eight; second stage: cmu41 two, pig39 three), each starting from the last (``--init``) as
@@ -65,6 +66,7 @@ def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, id
         extra_prob=args.extra_prob, extra_clusters=args.extra_clusters, cluster_size=args.cluster_size,
         cluster_radius=args.cluster_radius,
         stature_prob=args.stature_prob, bands=HEAD_BANDS if args.head_bands else (),
+        **({} if args.fitted is None else {"fitted": True, "jitter_radius": args.fitted}),
     )  # fmt: skip
     return SyntheticMocap(layout, cfg)
 
@@ -133,6 +135,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--cluster-radius", type=float, default=0.08, help="m, a cluster's radius on the rest mesh")
     p.add_argument("--stick-prob", type=float, default=0.5, help="fraction of samples with wrist bars")
     p.add_argument("--head-bands", action="store_true", help="head markers anywhere around the head (HEAD_BANDS)")
+    p.add_argument(
+        "--fitted", type=float, metavar="RADIUS",
+        help="m: a session layout is fitted, so markers stay within RADIUS of their vertex, at their distance",
+    )  # fmt: skip
     p.add_argument(
         "--extra-distance", type=float, nargs=2, default=(0.03, float("inf")), metavar=("LO", "HI"),
         help="m, range of an extra marker's distance to the nearest layout vertex",

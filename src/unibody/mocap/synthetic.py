@@ -17,6 +17,9 @@ together, with the arms moving alike), markers from a
   wider ``loose`` radii, or head-band markers anywhere around the head (``bands``);
 - marker-to-skin distance uniform in ``distance``; Gaussian noise of a per-frame std
   uniform in ``noise``;
+- with ``fitted`` (a session layout fitted to the session's own frame, paper §4.5: the
+  placement is known, not a rule), every marker within ``jitter_radius`` of its vertex, at
+  its layout distance within ``distance_jitter``, no slides, bands or wrist-bar draws;
 - optional label subsets (a smaller layout inside the model's, e.g. Plug-in Gait 35
   inside 39): the markers outside the subset are absent;
 - then :func:`~unibody.mocap.corrupt.corrupt_frames`: occlusions, ghost points, permutation.
@@ -104,6 +107,9 @@ class SyntheticConfig:
         jitter_cos: a candidate vertex's rest normal has a cosine of at least this with the
             layout vertex's normal (jitter stays on the same side of a limb).
         distance: m, marker-to-skin distance range.
+        fitted, distance_jitter: the layout's placement is the session's own (``unibody mocap
+            layout``): ``segments``, ``loose``, ``bands`` and sticks are ignored, every marker
+            jitters within ``jitter_radius`` and sits at its layout distance +- ``distance_jitter`` m.
         stick_labels, stick_distance, stick_prob: markers that labs often mount on wrist bars
             (MoSh++ uses 0.039 m for them): per sample, with probability ``stick_prob``, they
             sit ``stick_distance`` from the skin instead.
@@ -151,6 +157,8 @@ class SyntheticConfig:
     band_height: float = 0.025
     jitter_cos: float = 0.5
     distance: tuple[float, float] = (0.006, 0.02)
+    fitted: bool = False
+    distance_jitter: float = 0.005
     stick_labels: tuple[str, ...] = ("LWRA", "LWRB", "RWRA", "RWRB")
     stick_distance: tuple[float, float] = (0.02, 0.07)
     stick_prob: float = 0.5
@@ -208,7 +216,7 @@ class SyntheticMocap:
             d = torch.cdist(mean[layout.vertices], mean)  # (M, V)
             same_side = normal[layout.vertices] @ normal.T >= config.jitter_cos
             near = (d <= self.jitter_radii()[:, None]) & same_side
-            for i, label in enumerate(layout.labels):
+            for i, label in enumerate(() if config.fitted else layout.labels):
                 seg = [x for x in config.segments if label.endswith(x[0])]
                 if not seg:
                     continue
@@ -223,7 +231,7 @@ class SyntheticMocap:
             head = mean - joints["Head"]
             flat = torch.nn.functional.normalize(head * head.new_tensor([1.0, 0.0, 1.0]), dim=1)
             outward = ((normal * flat).sum(1) > 0.3) & (head.norm(dim=1) < 0.15)  # the skull's surface
-            for i, label in enumerate(layout.labels):
+            for i, label in enumerate(() if config.fitted else layout.labels):
                 band = [x for x in config.bands if label.endswith(x[0])]
                 if not band:
                     continue
@@ -266,13 +274,16 @@ class SyntheticMocap:
                 offsets.append(p.offsets)
         self.rest, self.normals = torch.cat(rest), torch.cat(normals)
         self.rest_rotations, self.rest_joints, self.offsets = torch.cat(rot), torch.cat(joints), torch.cat(offsets)
-        self.stick = torch.tensor([x in cfg_sticks for x in layout.labels], dtype=torch.bool)
+        self.stick = torch.tensor([x in cfg_sticks and not config.fitted for x in layout.labels], dtype=torch.bool)
         self.subset_masks = [
             torch.tensor([x in set(s) for x in layout.labels], dtype=torch.bool) for s in config.subsets
         ]
 
     def jitter_radii(self) -> torch.Tensor:
-        """(M,) m, the placement jitter radius of each layout marker (0 for ``segments`` and ``bands``)."""
+        """(M,) m, the placement jitter radius of each layout marker (0 for ``segments`` and ``bands``;
+        ``jitter_radius`` for all when ``fitted``)."""
+        if self.config.fitted:
+            return torch.full((len(self.layout),), self.config.jitter_radius)
         radii = []
         for label in self.layout.labels:
             groups = [0.0 for x in self.config.segments + self.config.bands if label.endswith(x[0])]  # by rule
@@ -321,6 +332,9 @@ class SyntheticMocap:
         normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-9)
         lo, hi = cfg.distance
         dist = lo + (hi - lo) * torch.rand(batch, k, 1, generator=generator)
+        if cfg.fitted:
+            dj = cfg.distance_jitter * (2 * torch.rand(batch, m, 1, generator=generator) - 1)
+            dist[:, :m] = (self.layout.distance[:, None] + dj).clamp_min(0.0)
         if self.stick.any():
             slo, shi = cfg.stick_distance
             stick = slo + (shi - slo) * torch.rand(batch, m, 1, generator=generator)
