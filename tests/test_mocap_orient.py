@@ -170,8 +170,9 @@ def test_training_script_trains_the_second_stage_only(tmp_path):
                            torch.cat([cmu.distance, torch.tensor([0.01, 0.01])]))  # fmt: skip
     session.save(tmp_path / "session.json")
     args = ["--layout", str(tmp_path / "session.json"), "--orient-with", weights, "--init", weights]
-    mod.main([*tiny[2:], *args, "--steps", "0", "--out", str(tmp_path / "session")])
+    mod.main([*tiny[2:], *args, "--fitted", "0.02", "--steps", "0", "--out", str(tmp_path / "session")])
     three = Labeler.load(tmp_path / "session" / "labeler.pt")
+    assert "--fitted 0.02" in three.meta["command"]
     assert three.label_names == session.labels and three.orienter.label_names == cmu.labels
     assert torch.equal(three.head[-1].weight[: len(cmu)], first.head[-1].weight)
     assert torch.equal(three.blocks[0].qkv.weight, first.blocks[0].qkv.weight)

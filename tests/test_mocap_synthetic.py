@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -166,6 +168,32 @@ def test_synthetic_jitter_and_subsets():
     dropped = m[:, extra].isnan().any(-1).all(-1).float().mean()
     assert abs(float(dropped) - 0.5) < 0.05
     assert not m[:, ~extra].isnan().any()
+
+
+def test_synthetic_fitted_placement_keeps_each_marker_at_its_own_place():
+    """A session layout (fitted to the session's frame): every marker, RTHI and the wrist bars
+    included, within ``jitter_radius`` of its vertex and at its own layout distance (+-
+    ``distance_jitter``), instead of the guides' slides and the shared distance range."""
+    base = MarkerLayout.load("pig39")
+    d = torch.linspace(0.004, 0.05, len(base))
+    lay, flat = (MarkerLayout("session", base.labels, base.vertices, x) for x in (d, torch.zeros_like(d)))
+    cfg = SyntheticConfig(identities=4, fitted=True, jitter_radius=0.02, distance_jitter=0.0, noise=(0.0, 0.0))
+    syn, syn0 = SyntheticMocap(lay, cfg), SyntheticMocap(flat, cfg)
+    assert torch.equal(syn.jitter_radii(), torch.full((len(lay),), 0.02)) and not syn.stick.any()
+    rest_mean = syn.layer.identity(torch.zeros(1, 16))[0]
+    cand = syn.used[syn.candidates]
+    for i in range(len(lay)):
+        ids = cand[i, : syn.num_candidates[i]]
+        assert (rest_mean[ids] - rest_mean[lay.vertices[i]]).norm(dim=-1).max() <= 0.02 + 1e-6, lay.labels[i]
+    m, m0 = (x.markers(64, torch.Generator().manual_seed(1)) for x in (syn, syn0))  # the same vertices
+    assert torch.allclose((m - m0).norm(dim=-1), d.expand(64, -1), atol=1e-4)
+    loose = SyntheticMocap(lay, SyntheticConfig(identities=4, fitted=True, distance_jitter=0.005, noise=(0.0, 0.0)))
+    m1 = loose.markers(256, torch.Generator().manual_seed(1))
+    m0 = SyntheticMocap(flat, replace(loose.config, distance_jitter=0.0)).markers(256, torch.Generator().manual_seed(1))
+    off = (m1 - m0).norm(dim=-1) - d
+    assert float(off.abs().max()) <= 0.005 + 1e-4 and float(off.std()) > 0.002  # uniform in +-5 mm
+    rules = SyntheticMocap(lay, SyntheticConfig(identities=4))
+    assert rules.num_candidates[lay.index("RTHI")] > 5 * syn.num_candidates[lay.index("RTHI")]  # the guide's slide
 
 
 def test_synthetic_head_bands_follow_the_config():
