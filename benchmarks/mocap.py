@@ -1,7 +1,7 @@
 """Mocap labeling and body solve on real, labelled C3D files (paper 003 protocol; evaluation only).
 
     OMP_NUM_THREADS=2 python benchmarks/mocap.py [--evaldata ../shared/evaldata] [--sections label speed solve]
-        [--session pycgm=build/s1_pycgm/labeler.pt]
+        [--session pycgm=build/s2_pycgm/labeler.pt tennis=build/s2_tennis/labeler.pt]
 
 Labels are hidden from the labeler and used only to score it. Files: CMU 85_02, 85_12, 135_02
 (CMU 41 layout, ``cmu41`` model); BTKData Plug-in Gait walking / static (35 markers), pyCGM
@@ -15,10 +15,11 @@ points in a file are real ghosts (truth: null).
 - **tracklet**: the sequence keeps its columns; the same per-frame occlusions and ghosts
   (ghosts in extra columns), 50 broken trajectories (paper §4.4), per-frame labels, then the
   majority label per column.
-- **session layouts** (``--session pycgm=WEIGHTS``, paper §4.5): the files whose name holds
-  ``pycgm`` are labelled again by a labeler of their session's layout (``unibody mocap layout``
-  on one frame: the model's markers and the session's other markers, named X01...); its extra
-  labels count as null, so its rows score the same labels as the model's.
+- **session layouts** (``--session KEY=WEIGHTS ...``, paper §4.5): the files whose name holds
+  KEY are labelled again by a labeler of their session's layout (``unibody mocap layout`` on
+  one frame: the model's markers at the session's places and its other markers, named X01...);
+  its extra labels count as null, so its rows score the same labels as the model's, and one
+  pooled row takes every session's files from its own labeler.
 - Scores: accuracy over all real points and macro F1 over the labels present incl. null.
 - **speed**: labeling frames/s at batch 1 and 256 (forward + decoding).
 - **solve**: the body solve on the files' own labels: mean / median marker residual,
@@ -182,22 +183,24 @@ def session_rows(root: Path, models: dict[str, Labeler], sessions: dict[str, Lab
         "| file | model | frames | no noise | per-frame C+G | tracklet: per-frame | tracklet |\n"
         "|---|---|---|---|---|---|---|"
     )
-    for key, smodel in sessions.items():
-        for name, files in FILES.items():
-            base = models[name]
-            if smodel.label_names[: base.num_labels] != base.label_names:
+    for name, files in FILES.items():
+        base = models[name]
+        mine = {k: m for k, m in sessions.items() if m.label_names[: base.num_labels] == base.label_names}
+        pooled, used = [], []
+        for rel in files:
+            key = next((k for k in mine if k in Path(rel).stem), None)
+            if key is None:
+                pooled.append(per_file[rel])
                 continue
-            pooled = []
-            for rel in files:
-                if key not in Path(rel).stem:
-                    pooled.append(per_file[rel])
-                    continue
-                seq = read(root / rel)
-                rows = score_file(smodel, seq, seed, base.num_labels)
-                pooled.append(rows)
-                scores = {k: labeling_scores(*v, null=base.num_labels) for k, v in rows.items()}
-                print(row(Path(rel).stem, f"{key} ({smodel.num_labels})", seq.num_frames, scores), flush=True)
-            print(row(f"**all {name} files, {key} by its session model**", name, "", pool(pooled, base.num_labels)))
+            seq, smodel = read(root / rel), mine[key]
+            rows = score_file(smodel, seq, seed, base.num_labels)
+            pooled.append(rows)
+            used.append(key)
+            scores = {k: labeling_scores(*v, null=base.num_labels) for k, v in rows.items()}
+            print(row(Path(rel).stem, f"{key} ({smodel.num_labels})", seq.num_frames, scores), flush=True)
+        if used:
+            keys = ", ".join(dict.fromkeys(used))
+            print(row(f"**all {name} files, {keys} by their session models**", name, "", pool(pooled, base.num_labels)))
 
 
 def label_section(root: Path, models: dict[str, Labeler], seed: int, sessions: dict[str, Labeler]) -> None:
