@@ -13,7 +13,9 @@ first stage) and rotated into the rest frame by its torso labels (:mod:`unibody.
 stage). Both may know fewer labels than ``--layout``: a session layout from
 ``unibody mocap layout`` (the shipped layout and the session's other markers, paper §4.5)
 trains from the shipped weights, its new labels' score rows starting fresh; ``--fitted`` then
-keeps every marker near its fitted place instead of the placement guides' slides.
+keeps every marker near its fitted place instead of the placement guides' slides, and
+``--neck-roll`` lets the head tilt further sideways than the recipe's poses (a session whose
+subject looks up and aside: the tennis serve in benchmarks/README.md).
 
 The shipped weights are two-stage labelers trained in several runs (first stage: cmu41 eleven,
 pig39 eight; second stage: cmu41 two, pig39 three), each starting from the last (``--init``) as
@@ -53,19 +55,25 @@ from unibody.mocap.labeler import Labeler, labeling_loss, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.orient import torso_template
 from unibody.mocap.pipeline import load_labeler
-from unibody.mocap.synthetic import SyntheticConfig, SyntheticMocap
+from unibody.mocap.synthetic import POSE, SyntheticConfig, SyntheticMocap
 
 HEAD_BANDS = (("FHD", 10.0, 100.0), ("BHD", 110.0, 170.0))  # --head-bands: azimuths from the front, degrees
 
 
 def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, identities: int) -> SyntheticMocap:
     subs = tuple(MarkerLayout.load(s).labels for s in args.subsets)
+    ranges = dict(POSE["ranges"])
+    if args.neck_roll is not None:  # sideways tilt (about Z) of each of Neck1, Neck2 and Head
+        for joint in ("Neck1", "Neck2", "Head"):
+            lo, hi, relaxed = ranges[joint]
+            ranges[joint] = ((*lo[:2], -args.neck_roll), (*hi[:2], args.neck_roll), relaxed)
     cfg = SyntheticConfig(
         identities=identities, pool_seed=pool_seed, subsets=subs, extras=args.extras,
         extra_distance=(args.extra_distance[0], args.extra_distance[1]), stick_prob=args.stick_prob,
         extra_prob=args.extra_prob, extra_clusters=args.extra_clusters, cluster_size=args.cluster_size,
         cluster_radius=args.cluster_radius,
         stature_prob=args.stature_prob, bands=HEAD_BANDS if args.head_bands else (),
+        pose={**POSE, "ranges": ranges},
         **({} if args.fitted is None else {"fitted": True, "jitter_radius": args.fitted}),
     )  # fmt: skip
     return SyntheticMocap(layout, cfg)
@@ -135,6 +143,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--cluster-radius", type=float, default=0.08, help="m, a cluster's radius on the rest mesh")
     p.add_argument("--stick-prob", type=float, default=0.5, help="fraction of samples with wrist bars")
     p.add_argument("--head-bands", action="store_true", help="head markers anywhere around the head (HEAD_BANDS)")
+    p.add_argument("--neck-roll", type=float, metavar="RAD", help="rad, each neck joint and the head tilt sideways")
     p.add_argument(
         "--fitted", type=float, metavar="RADIUS",
         help="m: a session layout is fitted, so markers stay within RADIUS of their vertex, at their distance",

@@ -12,6 +12,7 @@ from unibody.geometry.rotations import axis_angle_to_matrix, rotation_angle
 from unibody.mocap.labeler import Labeler
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.orient import fit_rotation, torso_template
+from unibody.mocap.synthetic import POSE
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "train_labeler.py"
 
@@ -147,10 +148,12 @@ def test_two_stage_labeler_errors():
         first.orient(torch.zeros(1, 8, 3), torch.ones(1, 8, dtype=torch.bool))
 
 
-def test_training_script_trains_the_second_stage_only(tmp_path):
+def test_training_script_trains_the_second_stage_only(tmp_path, monkeypatch):
     spec = importlib.util.spec_from_file_location("train_labeler", SCRIPT)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
+    configs, make = [], mod.SyntheticMocap
+    monkeypatch.setattr(mod, "SyntheticMocap", lambda layout, cfg: configs.append(cfg) or make(layout, cfg))
     tiny = ["--layout", "cmu41", "--batch", "8", "--threads", "1", "--width", "16", "--layers", "1", "--heads", "2",
             "--val-frames", "16", "--identities", "8", "--log-every", "1000"]  # fmt: skip
     mod.main([*tiny, "--steps", "3", "--out", str(tmp_path / "first")])
@@ -170,9 +173,18 @@ def test_training_script_trains_the_second_stage_only(tmp_path):
                            torch.cat([cmu.distance, torch.tensor([0.01, 0.01])]))  # fmt: skip
     session.save(tmp_path / "session.json")
     args = ["--layout", str(tmp_path / "session.json"), "--orient-with", weights, "--init", weights]
-    mod.main([*tiny[2:], *args, "--fitted", "0.02", "--steps", "0", "--out", str(tmp_path / "session")])
+    assert all(c.pose == POSE and not c.fitted for c in configs)  # the recipe's poses and slides
+    configs.clear()
+    extra = ["--fitted", "0.02", "--neck-roll", "0.3", "--steps", "0"]
+    mod.main([*tiny[2:], *args, *extra, "--out", str(tmp_path / "session")])
     three = Labeler.load(tmp_path / "session" / "labeler.pt")
-    assert "--fitted 0.02" in three.meta["command"]
+    assert "--fitted 0.02 --neck-roll 0.3" in three.meta["command"]
+    ranges = configs[0].pose["ranges"]
+    for joint in ("Neck1", "Neck2", "Head"):  # only the sideways tilt (about Z) widens
+        (lo, hi, relaxed), ref = ranges[joint], POSE["ranges"][joint]
+        assert lo == (*ref[0][:2], -0.3) and hi == (*ref[1][:2], 0.3) and relaxed == ref[2]
+    assert configs[0].fitted and configs[0].jitter_radius == 0.02
+    assert POSE["ranges"]["Head"][1][2] == 0.15  # the recipe's own ranges are untouched
     assert three.label_names == session.labels and three.orienter.label_names == cmu.labels
     assert torch.equal(three.head[-1].weight[: len(cmu)], first.head[-1].weight)
     assert torch.equal(three.blocks[0].qkv.weight, first.blocks[0].qkv.weight)
