@@ -33,7 +33,7 @@ frames takes milliseconds: data is made on the fly, never stored.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -186,9 +186,15 @@ def _true_first(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 class SyntheticMocap:
-    """Draw batches of labelled synthetic mocap frames for one layout (Y up, metres)."""
+    """Draw batches of labelled synthetic mocap frames for one layout (Y up, metres).
+
+    ``config`` is kept as given, except that ``fitted`` clears its placement rules (segments,
+    loose radii, bands, wrist-bar labels): the rules then in force.
+    """
 
     def __init__(self, layout: MarkerLayout, config: SyntheticConfig = SyntheticConfig(), *, chunk: int = 128):
+        if config.fitted:  # the session's own placement: no guide rules
+            config = replace(config, segments=(), loose=(), bands=(), stick_labels=())
         self.layout, self.config = layout, config
         cfg_sticks = set(config.stick_labels)
         layer = BodyLayer.from_pca(num_components=config.shape_components)
@@ -216,7 +222,7 @@ class SyntheticMocap:
             d = torch.cdist(mean[layout.vertices], mean)  # (M, V)
             same_side = normal[layout.vertices] @ normal.T >= config.jitter_cos
             near = (d <= self.jitter_radii()[:, None]) & same_side
-            for i, label in enumerate(() if config.fitted else layout.labels):
+            for i, label in enumerate(layout.labels):
                 seg = [x for x in config.segments if label.endswith(x[0])]
                 if not seg:
                     continue
@@ -231,7 +237,7 @@ class SyntheticMocap:
             head = mean - joints["Head"]
             flat = torch.nn.functional.normalize(head * head.new_tensor([1.0, 0.0, 1.0]), dim=1)
             outward = ((normal * flat).sum(1) > 0.3) & (head.norm(dim=1) < 0.15)  # the skull's surface
-            for i, label in enumerate(() if config.fitted else layout.labels):
+            for i, label in enumerate(layout.labels):
                 band = [x for x in config.bands if label.endswith(x[0])]
                 if not band:
                     continue
@@ -274,7 +280,7 @@ class SyntheticMocap:
                 offsets.append(p.offsets)
         self.rest, self.normals = torch.cat(rest), torch.cat(normals)
         self.rest_rotations, self.rest_joints, self.offsets = torch.cat(rot), torch.cat(joints), torch.cat(offsets)
-        self.stick = torch.tensor([x in cfg_sticks and not config.fitted for x in layout.labels], dtype=torch.bool)
+        self.stick = torch.tensor([x in cfg_sticks for x in layout.labels], dtype=torch.bool)
         self.subset_masks = [
             torch.tensor([x in set(s) for x in layout.labels], dtype=torch.bool) for s in config.subsets
         ]
@@ -282,8 +288,6 @@ class SyntheticMocap:
     def jitter_radii(self) -> torch.Tensor:
         """(M,) m, the placement jitter radius of each layout marker (0 for ``segments`` and ``bands``;
         ``jitter_radius`` for all when ``fitted``)."""
-        if self.config.fitted:
-            return torch.full((len(self.layout),), self.config.jitter_radius)
         radii = []
         for label in self.layout.labels:
             groups = [0.0 for x in self.config.segments + self.config.bands if label.endswith(x[0])]  # by rule
