@@ -1,7 +1,7 @@
 """Mocap labeling and body solve on real, labelled C3D files (paper 003 protocol; evaluation only).
 
     OMP_NUM_THREADS=2 python benchmarks/mocap.py [--evaldata ../shared/evaldata] [--sections label speed solve]
-        [--session pycgm=build/s2_pycgm/labeler.pt tennis=build/s2_tennis/labeler.pt]
+        [--session pycgm=build/s2_pycgm/labeler.pt tennis=build/s2_tennis/labeler.pt] [--retry R]
 
 Labels are hidden from the labeler and used only to score it. Files: CMU 85_02, 85_12, 135_02
 (CMU 41 layout, ``cmu41`` model); BTKData Plug-in Gait walking / static (35 markers), pyCGM
@@ -21,7 +21,10 @@ points in a file are real ghosts (truth: null).
   its extra labels count as null, so its rows score the same labels as the model's, and one
   pooled row takes every session's files from its own labeler.
 - Scores: accuracy over all real points and macro F1 over the labels present incl. null.
-- **speed**: labeling frames/s at batch 1 and 256 (forward + decoding).
+- **speed**: labeling frames/s at batch 1 and 256 (forward + decoding) on 256 real frames
+  spread over each model's files, corrupted as per-frame C+G (the two-stage labelers' retries
+  depend on the frames).
+- ``--retry R`` sets the two-stage labelers' retry confidence (0: no retries).
 - **solve**: the body solve on the files' own labels: mean / median marker residual,
   fraction of frames solved, frames/s of the whole solve; a PNG of one solved frame.
 """
@@ -259,23 +262,28 @@ def label_section(root: Path, models: dict[str, Labeler], seed: int, sessions: d
         print(f"| {name} | " + " | ".join(cells) + " |")
 
 
-def speed_section(models: dict[str, Labeler]) -> None:
-    print(f"\n## Labeling speed (CPU, {torch.get_num_threads()} threads; forward + decoding)")
-    print("| model | parameters | batch | frames/s |\n|---|---|---|---|")
-    gen = torch.Generator().manual_seed(0)
+def speed_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
+    """Frames/s on 256 frames spread over each model's files, corrupted as per-frame C+G."""
+    print(f"\n## Labeling speed (CPU, {torch.get_num_threads()} threads; forward + decoding, real frames)")
+    print("| model | parameters | retry | batch | frames/s |\n|---|---|---|---|---|")
+    gen = torch.Generator().manual_seed(seed)
     for name, model in models.items():
         n = sum(p.numel() for p in model.parameters())
-        for b in (1, 256):
-            pts = torch.randn(b, model.num_labels + 3, 3, generator=gen)
-            mask = torch.ones(b, model.num_labels + 3, dtype=torch.bool)
-            reps = 200 if b == 1 else 10
+        marked = np.concatenate([split(read(root / rel), model.label_names)[0] for rel in FILES[name]])
+        pick = np.linspace(0, len(marked) - 1, 256).round().astype(int)
+        b = corrupt_frames(torch.as_tensor(marked[pick], dtype=torch.float32), gen)
+        for size in (1, 256):
+            reps = 256 if size == 1 else 4
+            batches = [(b.points[k : k + size], b.mask[k : k + size]) for k in range(0, 256, size)]
             with torch.no_grad():
-                predict(model(pts, mask), mask)
+                predict(model(*batches[0]), batches[0][1])
                 t = time.perf_counter()
-                for _ in range(reps):
+                for k in range(reps):
+                    pts, mask = batches[k % len(batches)]
                     predict(model(pts, mask), mask)
                 dt = time.perf_counter() - t
-            print(f"| {name} | {n:,} | {b} | {b * reps / dt:,.0f} |", flush=True)
+            retry = model.config.get("retry", 0.0)
+            print(f"| {name} | {n:,} | {retry:g} | {size} | {size * reps / dt:,.0f} |", flush=True)
 
 
 def solve_section(root: Path, png: Path | None) -> None:
@@ -311,6 +319,7 @@ def main() -> None:
     p.add_argument("--png", type=Path, default=Path("benchmarks/mocap_solve.png"))
     p.add_argument("--cmu41", default="cmu41", help="labeler weights (name or path)")
     p.add_argument("--pig39", default="pig39", help="labeler weights (name or path)")
+    p.add_argument("--retry", type=float, help="two-stage labelers: override the weights' retry confidence (0: off)")
     p.add_argument("--session", nargs="*", default=[], metavar="KEY=WEIGHTS",
                    help="the files whose name holds KEY also by this session-layout labeler")  # fmt: skip
     args = p.parse_args()
@@ -325,11 +334,13 @@ def main() -> None:
     sessions = {k: load_labeler(w) for k, _, w in (x.partition("=") for x in args.session)}
     for m in (*models.values(), *sessions.values()):
         m.eval()
+        if args.retry is not None and m.orienter is not None:
+            m.config["retry"] = args.retry
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
     if "label" in args.sections:
         label_section(args.evaldata, models, args.seed, sessions)
     if "speed" in args.sections:
-        speed_section(models)
+        speed_section(args.evaldata, models, args.seed)
     if "solve" in args.sections:
         solve_section(args.evaldata, args.png)
 

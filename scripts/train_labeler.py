@@ -162,6 +162,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--init", help="start from labeler weights (name or path) or another run's checkpoint.pt")
     p.add_argument("--orient-with", help="labeler (name or path) whose torso labels orient every frame first")
     p.add_argument("--orienter-refine", type=int, default=1, help="the orienter's re-centring passes")
+    p.add_argument(
+        "--retry", type=float, default=0.9,
+        help="with --orient-with: frames labelled less surely than this are oriented again (not in training)",
+    )  # fmt: skip
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     rev = git_rev()  # the code the run started from
@@ -192,6 +196,7 @@ def main(argv: list[str] | None = None) -> None:
         heads=args.heads,
         centre=args.centre,
         refine=args.refine,
+        retry=args.retry if orient else 0.0,
         **orient,
     )
     if args.init:
@@ -238,7 +243,7 @@ def main(argv: list[str] | None = None) -> None:
         for group in opt.param_groups:
             group["lr"] = lr_at(step)
         batch = train_data.sample(args.batch, gen)
-        loss = labeling_loss(model(batch.points, batch.mask, refine=0), batch)
+        loss = labeling_loss(model(batch.points, batch.mask, refine=0, retry=0.0), batch)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite loss at step {step}")
         opt.zero_grad(set_to_none=True)
@@ -289,6 +294,7 @@ def main(argv: list[str] | None = None) -> None:
         "head_bands": args.head_bands,
         "orient_with": args.orient_with,
         "orienter_refine": args.orienter_refine if args.orient_with else None,
+        "retry": args.retry if args.orient_with else None,
         "orienter": orient["orienter"].meta if orient else None,
         "synthetic_val_accuracy": round(acc, 5),
         "synthetic_val_marker_accuracy": round(acc_m, 5),

@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import importlib.util
+import math
 from pathlib import Path
 
 import pytest
 import torch
 
 from unibody.geometry.rotations import axis_angle_to_matrix, rotation_angle
-from unibody.mocap.labeler import Labeler
+from unibody.mocap.labeler import Labeler, predict
 from unibody.mocap.layout import MarkerLayout
-from unibody.mocap.orient import fit_rotation, torso_template
+from unibody.mocap.orient import TILTS, fit_rotation, torso_template
 from unibody.mocap.synthetic import POSE
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "train_labeler.py"
@@ -189,3 +190,45 @@ def test_training_script_trains_the_second_stage_only(tmp_path, monkeypatch):
     assert torch.equal(three.head[-1].weight[: len(cmu)], first.head[-1].weight)
     assert torch.equal(three.blocks[0].qkv.weight, first.blocks[0].qkv.weight)
     assert torch.equal(three.template, template)
+
+
+def test_tilts_are_distinct_turns_that_tip_the_vertical_over():
+    eye = torch.eye(3, dtype=torch.float64)
+    torch.testing.assert_close(TILTS @ TILTS.transpose(1, 2), eye.expand(13, 3, 3))
+    torch.testing.assert_close(torch.linalg.det(TILTS), torch.ones(13, dtype=torch.float64))
+    up = TILTS[:, :, 1]  # where each tilt takes the vertical
+    assert bool((up[:, 1] < math.cos(math.radians(44))).all())  # every one tips it 45 deg or more
+    cos = ((TILTS[:, None] * TILTS[None]).sum(dim=(2, 3)) - 1) / 2  # cosine of the angle between two tilts
+    assert bool((cos - 2 * torch.eye(13, dtype=torch.float64) < math.cos(math.radians(40))).all())
+
+
+def test_retry_never_leaves_a_frame_less_sure_and_keeps_the_sure_ones(tmp_path):
+    model = _two_stage(seed=1).eval()
+    g = torch.Generator().manual_seed(2)
+    pts, mask = torch.randn(16, 10, 3, generator=g), torch.ones(16, 10, dtype=torch.bool)
+    mask[3, 6:] = False
+    with torch.no_grad():
+        plain = model(pts, mask)
+        sure = predict(plain, mask)[1].sum(dim=1) / mask.sum(dim=1)
+        cut = float(sure.median())
+        for retry in (cut, 1.0):
+            out = model(pts, mask, retry=retry)
+            again = predict(out, mask)[1].sum(dim=1) / mask.sum(dim=1)
+            assert bool((again >= sure - 1e-6).all())
+            kept = sure >= retry
+            torch.testing.assert_close(out[kept], plain[kept])
+        assert bool((again > sure + 1e-4).any())  # some frame of an untrained model is surer turned
+    retrying = Labeler(8, width=16, layers=1, heads=2, orienter=model.orienter, template=model.template,
+                       torso=model.torso, retry=1.0)  # fmt: skip
+    retrying.load_state_dict(model.state_dict())
+    retrying.save(tmp_path / "r.pt")
+    loaded = Labeler.load(tmp_path / "r.pt").eval()
+    assert loaded.config["retry"] == 1.0
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(pts, mask), model(pts, mask, retry=1.0))
+    model(pts, mask, retry=cut).logsumexp(dim=(1, 2)).sum().backward()  # the frames kept carry gradients
+    assert model.bin_score.grad is not None and model.bin_score.grad.isfinite()
+    with pytest.raises(ValueError, match="retry: expected 0, or a confidence in"):
+        Labeler(8, retry=0.5)  # no orienter
+    with pytest.raises(ValueError, match="retry: expected 0, or a confidence in"):
+        model(pts, mask, retry=1.5)

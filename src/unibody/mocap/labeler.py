@@ -23,7 +23,11 @@ in every orientation. Each frame is labelled by the orienter first, rotated into
 rest frame by a rigid fit of its torso markers (:mod:`unibody.mocap.orient`) and centred on
 the points the orienter called markers; this labeler, trained on frames oriented the same
 way, then labels it with up, left and front as fixed axes. Lying, tumbling and leaning
-bodies gain most.
+bodies gain most. When the orienter mislabels the torso (mostly lying and inverted frames),
+the frame is turned the wrong way and this labeler is unsure of its labels: with ``retry``,
+such frames are oriented again from the orienter's labels of the frame tipped over in 13
+ways (:data:`~unibody.mocap.orient.TILTS`) and once more from this labeler's own best labels,
+and keep the labels this labeler is surest of.
 
 Differences from the paper's network (1.44 M parameters, d=125, 8 layers, 5 heads,
 BatchNorm, post-merge MLP): LayerNorm instead of BatchNorm (no train/eval difference, no
@@ -41,7 +45,7 @@ import torch
 from torch import nn
 
 from .._checks import check_finite, check_like, check_shape
-from .orient import fit_rotation
+from .orient import TILTS, fit_rotation
 from .sinkhorn import log_sinkhorn
 
 if TYPE_CHECKING:
@@ -115,6 +119,10 @@ class Labeler(nn.Module):
         template, torso: (Lo, 3) rest-frame positions and (Lo,) bool torso flags of the
             orienter's markers, which its labels are fitted to
             (:func:`~unibody.mocap.orient.torso_template`); needed with ``orienter``.
+        retry: with an orienter, frames whose mean label confidence (over their real points)
+            is below ``retry`` are oriented again (see above; 0 never, 1 every frame; training
+            uses none). The labels kept are those of the orientation with the highest mean
+            confidence, so a retried frame is never less sure than it was.
 
     Attributes:
         meta: free-form training record (command, seed, steps, metrics), saved with the weights.
@@ -134,6 +142,7 @@ class Labeler(nn.Module):
         orienter: Labeler | None = None,
         template: torch.Tensor | None = None,
         torso: torch.Tensor | None = None,
+        retry: float = 0.0,
     ) -> None:
         super().__init__()
         if num_labels < 1:
@@ -146,12 +155,15 @@ class Labeler(nn.Module):
             raise ValueError(f"centre: expected 'median' or 'midrange', got {centre!r}")
         if refine < 0:
             raise ValueError(f"refine: expected >= 0, got {refine}")
+        if not 0.0 <= retry <= 1.0 or (retry and orienter is None):
+            raise ValueError(f"retry: expected 0, or a confidence in (0, 1] with an orienter, got {retry}")
         names = tuple(str(i) for i in range(num_labels)) if label_names is None else tuple(label_names)
         if len(names) != num_labels:
             raise ValueError(f"label_names: expected {num_labels} names, got {len(names)}")
         self.label_names = names
         self.config = {"num_labels": num_labels, "width": width, "layers": layers, "heads": heads,
-                       "sinkhorn_iters": sinkhorn_iters, "centre": centre, "refine": refine}  # fmt: skip
+                       "sinkhorn_iters": sinkhorn_iters, "centre": centre, "refine": refine,
+                       "retry": float(retry)}  # fmt: skip
         self.meta: dict = {}
         self.embed = nn.Sequential(nn.Linear(3, width), nn.ReLU(), nn.Linear(width, width))
         self.blocks = nn.ModuleList(_Block(width, heads) for _ in range(layers))
@@ -175,6 +187,10 @@ class Labeler(nn.Module):
                 self.config["orienter"]["label_names"] = list(orienter.label_names)
             self.register_buffer("template", template.detach().to(self.bin_score.dtype).clone())
             self.register_buffer("torso", torso.clone())
+            # each label's orienter label (the orienter's null for the labels it does not name)
+            index = {x: i for i, x in enumerate(orienter.label_names)}
+            to_orienter = [index.get(x, orienter.num_labels) for x in names] + [orienter.num_labels]
+            self.register_buffer("to_orienter", torch.tensor(to_orienter), persistent=False)
 
     @property
     def num_labels(self) -> int:
@@ -207,13 +223,17 @@ class Labeler(nn.Module):
             x = block(x, key_bias)
         return self.head(x)
 
-    def forward(self, points: torch.Tensor, mask: torch.Tensor, *, refine: int | None = None) -> torch.Tensor:
+    def forward(
+        self, points: torch.Tensor, mask: torch.Tensor, *, refine: int | None = None, retry: float | None = None
+    ) -> torch.Tensor:
         """Log assignment plan of each frame.
 
         Args:
             points: (B, N, 3) m, unibody frame (Y up); padding slots are ignored (may hold anything).
             mask: (B, N) bool, True for real points (markers and ghosts).
             refine: re-centring passes (default: the model's ``refine``; training uses 0).
+            retry: confidence below which a frame is oriented again (default: the model's
+                ``retry``; training uses 0).
 
         Returns:
             (B, N+1, L+1) log plan (see :func:`~unibody.mocap.sinkhorn.log_sinkhorn`): row i,
@@ -231,14 +251,20 @@ class Labeler(nn.Module):
         check_like(points, self.bin_score, "points", owner="the labeler")
         check_finite(torch.where(mask[..., None], points, 0.0), "points")
         refine = self.config["refine"] if refine is None else refine
+        retry = self.config.get("retry", 0.0) if retry is None else retry
         if refine < 0:
             raise ValueError(f"refine: expected >= 0, got {refine}")
+        if not 0.0 <= retry <= 1.0 or (retry and self.orienter is None):
+            raise ValueError(f"retry: expected 0, or a confidence in (0, 1] with an orienter, got {retry}")
+        if self.orienter is None:
+            return self._label(points, mask, self.centres(points, mask, "midrange" if refine else None), refine)
+        rot, centre = self.orient(points, mask)
+        plan = self._label(points @ rot.transpose(1, 2), mask, centre, refine)
+        return self._retry(points, mask, plan, retry, refine) if retry else plan
+
+    def _label(self, points: torch.Tensor, mask: torch.Tensor, centre: torch.Tensor, refine: int) -> torch.Tensor:
+        """Log plan of frames already centred on ``centre`` (and oriented), after ``refine`` re-centrings."""
         iters, null = self.config["sinkhorn_iters"], self.num_labels
-        if self.orienter is not None:
-            rot, centre = self.orient(points, mask)
-            points = points @ rot.transpose(1, 2)
-        else:
-            centre = self.centres(points, mask, "midrange" if refine else None)
         for _ in range(refine):
             with torch.no_grad():
                 plan = log_sinkhorn(self.scores(points, mask, centre), self.bin_score, mask, iters)
@@ -260,13 +286,47 @@ class Labeler(nn.Module):
             raise ValueError("orient: this labeler has no orienter")
         points = torch.where(mask[..., None], points, 0.0)  # padding may hold anything
         labels, confidence = predict(self.orienter(points, mask), mask)
-        null = self.orienter.num_labels
-        known = labels.clamp_max(null - 1)
-        weights = torch.where(mask & (labels != null) & self.torso[known], confidence, 0.0)
+        return self._fit(points, mask, labels, confidence, labels != self.orienter.num_labels)
+
+    def _fit(self, points, mask, labels, confidence, marker) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rotation and centre (as :meth:`orient`) from orienter labels (B, N) and their confidence."""
+        known = labels.clamp_max(self.orienter.num_labels - 1)
+        weights = torch.where(mask & (labels != self.orienter.num_labels) & self.torso[known], confidence, 0.0)
         rot = fit_rotation(points, weights, self.template[known])
-        marker = mask & (labels != null)
+        marker = mask & marker
         marker = torch.where(marker.sum(dim=1, keepdim=True) >= 3, marker, mask)
         return rot, self.centres(points @ rot.transpose(1, 2), marker)
+
+    def _retry(self, points, mask, plan, retry: float, refine: int) -> torch.Tensor:
+        """Orient again the frames whose mean confidence in ``plan`` is below ``retry``; keep the surest plan.
+
+        Candidates: the orienter's labels (one pass) of the frame turned by each of
+        :data:`~unibody.mocap.orient.TILTS`, then this labeler's own labels of the best so far.
+        """
+        low = (_surety(plan, mask) < retry).nonzero()[:, 0]
+        if not len(low):
+            return plan
+        p, m = torch.where(mask[low, :, None], points[low], 0.0), mask[low]
+        k, n, null = len(TILTS), len(low), self.orienter.num_labels
+        with torch.no_grad():  # every tilt of every frame in one pass of each stage
+            tilts = TILTS.to(p)
+            q = (p[None] @ tilts[:, None].transpose(-1, -2)).flatten(0, 1)  # (K * F, N, 3)
+            mq = m.repeat(k, 1)
+            labels, conf = predict(self.orienter(q, mq, refine=0), mq)
+            rots, centres = self._fit(q, mq, labels, conf, labels != null)
+            rots = (rots.unflatten(0, (k, n)) @ tilts[:, None]).flatten(0, 1)  # back from each tilt
+            cands = self._label((p.repeat(k, 1, 1) @ rots.transpose(1, 2)), mq, centres, refine)
+            plans = torch.cat([plan[low].detach(), cands]).unflatten(0, (k + 1, n))
+            sure = _surety(plans.flatten(0, 1), m.repeat(k + 1, 1)).unflatten(0, (k + 1, n))
+            best = plans[sure.argmax(dim=0), torch.arange(n)]  # ties keep the first orientation
+            # and once more from this labeler's own labels of the best
+            labels, conf = predict(best, m)
+            rot, centre = self._fit(p, m, self.to_orienter[labels], conf, labels != self.num_labels)
+            last = self._label(p @ rot.transpose(1, 2), m, centre, refine)
+            best = torch.where((_surety(last, m) > sure.max(dim=0).values)[:, None, None], last, best)
+        plan = plan.clone()
+        plan[low] = best
+        return plan
 
     def save(self, path: str | Path, meta: dict | None = None) -> None:
         """Write weights, configuration, label names and ``meta`` (default :attr:`meta`) to one file.
@@ -338,6 +398,11 @@ def labeling_loss(log_plan: torch.Tensor, batch: MocapBatch) -> torch.Tensor:
     total = (row_w * row_logp).sum() + (w_null[:, None] * torch.where(unmatched, bin_logp, 0.0)).sum()
     count = mask.sum() + unmatched.sum()
     return -total / count.clamp(min=1)
+
+
+def _surety(log_plan: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(B,) mean confidence of each frame's decoded labels over its real points."""
+    return predict(log_plan, mask)[1].sum(dim=1) / mask.sum(dim=1).clamp_min(1)
 
 
 def predict(log_plan: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

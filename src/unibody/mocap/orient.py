@@ -20,15 +20,46 @@ of the residuals so that a torso label given to the wrong point does not tilt th
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from .._checks import check_shape
 from ..geometry.procrustes import kabsch
 from .layout import MarkerLayout, place_markers
 
-__all__ = ["TORSO_JOINTS", "fit_rotation", "torso_template"]
+__all__ = ["TILTS", "TORSO_JOINTS", "fit_rotation", "torso_template"]
 
 TORSO_JOINTS = ("Hips", "Spine1", "Spine2", "Chest")
+
+
+def _axis_angle(axis: int, angle: float) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    i, j = [k for k in range(3) if k != axis]
+    rot = torch.eye(3, dtype=torch.float64)
+    rot[i, i], rot[i, j], rot[j, i], rot[j, j] = c, -s, s, c
+    return rot
+
+
+def _tilts() -> torch.Tensor:
+    """(13, 3, 3) float64 rotations that tip an upright frame onto its back, front, sides or head.
+
+    Quarter and half turns about the left (X) axis, quarter turns about the forward (Z) axis,
+    and the eight eighth-turn combinations X(+-45, +-135 deg) Z(+-45 deg). No turn about the
+    vertical: the labelers are trained on every heading.
+    """
+    quarter, eighth = math.pi / 2, math.pi / 4
+    out = [_axis_angle(0, a) for a in (quarter, -quarter, 2 * quarter)]
+    out += [_axis_angle(2, a) for a in (quarter, -quarter)]
+    out += [
+        _axis_angle(0, a) @ _axis_angle(2, b)
+        for a in (eighth, -eighth, 3 * eighth, -3 * eighth)
+        for b in (eighth, -eighth)
+    ]
+    return torch.stack(out)
+
+
+TILTS = _tilts()
 
 
 def torso_template(layout: MarkerLayout) -> tuple[torch.Tensor, torch.Tensor]:
