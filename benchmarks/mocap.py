@@ -22,8 +22,8 @@ points in a file are real ghosts (truth: null).
   pooled row takes every session's files from its own labeler.
 - Scores: accuracy over all real points and macro F1 over the labels present incl. null.
 - **speed**: labeling frames/s at batch 1 and 256 (forward + decoding) on 256 real frames
-  spread over each model's files, corrupted as per-frame C+G (the two-stage labelers' retries
-  depend on the frames).
+  spread over each model's files, corrupted as per-frame C+G, with the two-stage labelers'
+  retry confidence (their cost depends on the frames) and without retries.
 - ``--retry R`` sets the two-stage labelers' retry confidence (0: no retries).
 - **solve**: the body solve on the files' own labels: mean / median marker residual,
   fraction of frames solved, frames/s of the whole solve; a PNG of one solved frame.
@@ -263,7 +263,10 @@ def label_section(root: Path, models: dict[str, Labeler], seed: int, sessions: d
 
 
 def speed_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
-    """Frames/s on 256 frames spread over each model's files, corrupted as per-frame C+G."""
+    """Frames/s on 256 frames spread over each model's files, corrupted as per-frame C+G.
+
+    Two-stage labelers run with their retry confidence and without retries (0).
+    """
     print(f"\n## Labeling speed (CPU, {torch.get_num_threads()} threads; forward + decoding, real frames)")
     print("| model | parameters | retry | batch | frames/s |\n|---|---|---|---|---|")
     gen = torch.Generator().manual_seed(seed)
@@ -272,18 +275,19 @@ def speed_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
         marked = np.concatenate([split(read(root / rel), model.label_names)[0] for rel in FILES[name]])
         pick = np.linspace(0, len(marked) - 1, 256).round().astype(int)
         b = corrupt_frames(torch.as_tensor(marked[pick], dtype=torch.float32), gen)
-        for size in (1, 256):
-            reps = 256 if size == 1 else 4
-            batches = [(b.points[k : k + size], b.mask[k : k + size]) for k in range(0, 256, size)]
-            with torch.no_grad():
-                predict(model(*batches[0]), batches[0][1])
-                t = time.perf_counter()
-                for k in range(reps):
-                    pts, mask = batches[k % len(batches)]
-                    predict(model(pts, mask), mask)
-                dt = time.perf_counter() - t
-            retry = model.config.get("retry", 0.0)
-            print(f"| {name} | {n:,} | {retry:g} | {size} | {size * reps / dt:,.0f} |", flush=True)
+        own = model.config.get("retry", 0.0)
+        for retry in dict.fromkeys((own, 0.0)):
+            for size in (1, 256):
+                reps = 256 if size == 1 else 4
+                batches = [(b.points[k : k + size], b.mask[k : k + size]) for k in range(0, 256, size)]
+                with torch.no_grad():
+                    predict(model(*batches[0], retry=retry), batches[0][1])
+                    t = time.perf_counter()
+                    for k in range(reps):
+                        pts, mask = batches[k % len(batches)]
+                        predict(model(pts, mask, retry=retry), mask)
+                    dt = time.perf_counter() - t
+                print(f"| {name} | {n:,} | {retry:g} | {size} | {size * reps / dt:,.0f} |", flush=True)
 
 
 def solve_section(root: Path, png: Path | None) -> None:
