@@ -318,7 +318,7 @@ class Labeler(nn.Module):
             cands = self._label((p.repeat(k, 1, 1) @ rots.transpose(1, 2)), mq, centres, refine)
             plans = torch.cat([plan[low].detach(), cands]).unflatten(0, (k + 1, n))
             sure = _surety(plans.flatten(0, 1), m.repeat(k + 1, 1)).unflatten(0, (k + 1, n))
-            best = plans[sure.argmax(dim=0), torch.arange(n)]  # ties keep the first orientation
+            best = plans[sure.argmax(dim=0), torch.arange(n, device=p.device)]  # ties keep the first
             # and once more from this labeler's own labels of the best
             labels, conf = predict(best, m)
             rot, centre = self._fit(p, m, self.to_orienter[labels], conf, labels != self.num_labels)

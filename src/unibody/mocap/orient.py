@@ -16,6 +16,9 @@ of the residuals so that a torso label given to the wrong point does not tilt th
 
     template, torso = torso_template(MarkerLayout.load("cmu41"))
     rot = fit_rotation(points, weights, template[labels])      # (B, 3, 3): R p + t ~ template
+
+:data:`TILTS` are the 13 turns from which a frame the first stage turned the wrong way is
+oriented again (``Labeler(retry=...)``).
 """
 
 from __future__ import annotations
@@ -26,19 +29,12 @@ import torch
 
 from .._checks import check_shape
 from ..geometry.procrustes import kabsch
+from ..geometry.rotations import axis_angle_to_matrix
 from .layout import MarkerLayout, place_markers
 
 __all__ = ["TILTS", "TORSO_JOINTS", "fit_rotation", "torso_template"]
 
 TORSO_JOINTS = ("Hips", "Spine1", "Spine2", "Chest")
-
-
-def _axis_angle(axis: int, angle: float) -> torch.Tensor:
-    c, s = math.cos(angle), math.sin(angle)
-    i, j = [k for k in range(3) if k != axis]
-    rot = torch.eye(3, dtype=torch.float64)
-    rot[i, i], rot[i, j], rot[j, i], rot[j, j] = c, -s, s, c
-    return rot
 
 
 def _tilts() -> torch.Tensor:
@@ -48,17 +44,17 @@ def _tilts() -> torch.Tensor:
     and the eight eighth-turn combinations X(+-45, +-135 deg) Z(+-45 deg). No turn about the
     vertical: the labelers are trained on every heading.
     """
+
+    def turn(axis: int, angle: float) -> torch.Tensor:
+        return axis_angle_to_matrix(torch.eye(3, dtype=torch.float64)[axis] * angle)
+
     quarter, eighth = math.pi / 2, math.pi / 4
-    out = [_axis_angle(0, a) for a in (quarter, -quarter, 2 * quarter)]
-    out += [_axis_angle(2, a) for a in (quarter, -quarter)]
-    out += [
-        _axis_angle(0, a) @ _axis_angle(2, b)
-        for a in (eighth, -eighth, 3 * eighth, -3 * eighth)
-        for b in (eighth, -eighth)
-    ]
+    out = [turn(0, a) for a in (quarter, -quarter, 2 * quarter)] + [turn(2, a) for a in (quarter, -quarter)]
+    out += [turn(0, a) @ turn(2, b) for a in (eighth, -eighth, 3 * eighth, -3 * eighth) for b in (eighth, -eighth)]
     return torch.stack(out)
 
 
+# Where a frame the first stage could not orient is tried again (``Labeler(retry=...)``).
 TILTS = _tilts()
 
 
