@@ -12,7 +12,7 @@ import torch
 from unibody.geometry.rotations import axis_angle_to_matrix, rotation_angle
 from unibody.mocap.labeler import Labeler, predict
 from unibody.mocap.layout import MarkerLayout
-from unibody.mocap.orient import TILTS, fit_rotation, torso_template
+from unibody.mocap.orient import NUDGES, TILTS, fit_rotation, torso_template
 from unibody.mocap.synthetic import POSE
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "train_labeler.py"
@@ -192,7 +192,7 @@ def test_training_script_trains_the_second_stage_only(tmp_path, monkeypatch):
     assert torch.equal(three.template, template)
 
 
-def test_tilts_are_distinct_turns_that_tip_the_vertical_over():
+def test_tilts_are_distinct_turns_that_tip_the_vertical_over_and_nudges_are_small():
     eye = torch.eye(3, dtype=torch.float64)
     torch.testing.assert_close(TILTS @ TILTS.transpose(1, 2), eye.expand(13, 3, 3))
     torch.testing.assert_close(torch.linalg.det(TILTS), torch.ones(13, dtype=torch.float64))
@@ -200,6 +200,8 @@ def test_tilts_are_distinct_turns_that_tip_the_vertical_over():
     assert bool((up[:, 1] < math.cos(math.radians(44))).all())  # every one tips it 45 deg or more
     cos = ((TILTS[:, None] * TILTS[None]).sum(dim=(2, 3)) - 1) / 2  # cosine of the angle between two tilts
     assert bool((cos - 2 * torch.eye(13, dtype=torch.float64) < math.cos(math.radians(40))).all())
+    assert torch.equal(NUDGES[0], eye) and len(NUDGES) == 7
+    torch.testing.assert_close(rotation_angle(NUDGES[1:]), torch.full((6,), 0.35, dtype=torch.float64))
 
 
 def test_retry_never_leaves_a_frame_less_sure_and_keeps_the_sure_ones(tmp_path):

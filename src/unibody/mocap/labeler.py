@@ -26,8 +26,9 @@ way, then labels it with up, left and front as fixed axes. Lying, tumbling and l
 bodies gain most. When the orienter mislabels the torso (mostly lying and inverted frames),
 the frame is turned the wrong way and this labeler is unsure of its labels: with ``retry``,
 such frames are oriented again from the orienter's labels of the frame tipped over in 13
-ways (:data:`~unibody.mocap.orient.TILTS`) and once more from this labeler's own best labels,
-and keep the labels this labeler is surest of.
+ways (:data:`~unibody.mocap.orient.TILTS`), then from this labeler's own best labels and
+small turns of that orientation (:data:`~unibody.mocap.orient.NUDGES`), and keep the labels
+this labeler is surest of.
 
 Differences from the paper's network (1.44 M parameters, d=125, 8 layers, 5 heads,
 BatchNorm, post-merge MLP): LayerNorm instead of BatchNorm (no train/eval difference, no
@@ -45,7 +46,7 @@ import torch
 from torch import nn
 
 from .._checks import check_finite, check_like, check_shape
-from .orient import TILTS, fit_rotation
+from .orient import NUDGES, TILTS, fit_rotation
 from .sinkhorn import log_sinkhorn
 
 if TYPE_CHECKING:
@@ -293,40 +294,54 @@ class Labeler(nn.Module):
         known = labels.clamp_max(self.orienter.num_labels - 1)
         weights = torch.where(mask & (labels != self.orienter.num_labels) & self.torso[known], confidence, 0.0)
         rot = fit_rotation(points, weights, self.template[known])
+        return rot, self._marker_centres(points @ rot.transpose(1, 2), mask, marker)
+
+    def _marker_centres(self, points, mask, marker) -> torch.Tensor:
+        """:meth:`centres` of the real points ``marker`` calls markers (all of them if fewer than 3)."""
         marker = mask & marker
-        marker = torch.where(marker.sum(dim=1, keepdim=True) >= 3, marker, mask)
-        return rot, self.centres(points @ rot.transpose(1, 2), marker)
+        return self.centres(points, torch.where(marker.sum(dim=1, keepdim=True) >= 3, marker, mask))
 
     def _retry(self, points, mask, plan, retry: float, refine: int) -> torch.Tensor:
         """Orient again the frames whose mean confidence in ``plan`` is below ``retry``; keep the surest plan.
 
         Candidates: the orienter's labels (one pass) of the frame turned by each of
-        :data:`~unibody.mocap.orient.TILTS`, then this labeler's own labels of the best so far.
+        :data:`~unibody.mocap.orient.TILTS`; then the fit of this labeler's own labels of the
+        best so far, turned by each of :data:`~unibody.mocap.orient.NUDGES`.
         """
         low = (_surety(plan, mask) < retry).nonzero()[:, 0]
         if not len(low):
             return plan
         p, m = torch.where(mask[low, :, None], points[low], 0.0), mask[low]
-        k, n, null = len(TILTS), len(low), self.orienter.num_labels
-        with torch.no_grad():  # every tilt of every frame in one pass of each stage
+        with torch.no_grad():  # all candidates of all frames in one pass of each stage
+            best = plan[low].detach()
+            sure = _surety(best, m)
+            k, n, null = len(TILTS), len(low), self.orienter.num_labels
             tilts = TILTS.to(p)
             q = (p[None] @ tilts[:, None].transpose(-1, -2)).flatten(0, 1)  # (K * F, N, 3)
-            mq = m.repeat(k, 1)
-            labels, conf = predict(self.orienter(q, mq, refine=0), mq)
-            rots, centres = self._fit(q, mq, labels, conf, labels != null)
-            rots = (rots.unflatten(0, (k, n)) @ tilts[:, None]).flatten(0, 1)  # back from each tilt
-            cands = self._label((p.repeat(k, 1, 1) @ rots.transpose(1, 2)), mq, centres, refine)
-            plans = torch.cat([plan[low].detach(), cands]).unflatten(0, (k + 1, n))
-            sure = _surety(plans.flatten(0, 1), m.repeat(k + 1, 1)).unflatten(0, (k + 1, n))
-            best = plans[sure.argmax(dim=0), torch.arange(n, device=p.device)]  # ties keep the first
-            # and once more from this labeler's own labels of the best
+            labels, conf = predict(self.orienter(q, m.repeat(k, 1), refine=0), m.repeat(k, 1))
+            rots, _ = self._fit(q, m.repeat(k, 1), labels, conf, labels != null)
+            rots = rots.unflatten(0, (k, n)) @ tilts[:, None]  # back from each tilt
+            best, sure = self._surest(p, m, rots, labels.unflatten(0, (k, n)) != null, best, sure, refine)
             labels, conf = predict(best, m)
-            rot, centre = self._fit(p, m, self.to_orienter[labels], conf, labels != self.num_labels)
-            last = self._label(p @ rot.transpose(1, 2), m, centre, refine)
-            best = torch.where((_surety(last, m) > sure.max(dim=0).values)[:, None, None], last, best)
+            rot, _ = self._fit(p, m, self.to_orienter[labels], conf, labels != self.num_labels)
+            rots = NUDGES.to(p)[:, None] @ rot
+            marker = (labels != self.num_labels).expand(len(NUDGES), -1, -1)
+            best, _ = self._surest(p, m, rots, marker, best, sure, refine)
         plan = plan.clone()
         plan[low] = best
         return plan
+
+    def _surest(self, p, m, rots, marker, best, sure, refine: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Label frames p (F, N, 3) in K orientations rots (K, F, 3, 3), each centred on the points
+        ``marker`` (K, F, N) calls markers; keep a candidate where it is surer than ``best``."""
+        k, n = rots.shape[:2]
+        mk = m.repeat(k, 1)
+        pts = p.repeat(k, 1, 1) @ rots.flatten(0, 1).transpose(1, 2)
+        cands = self._label(pts, mk, self._marker_centres(pts, mk, marker.flatten(0, 1)), refine)
+        top, at = _surety(cands, mk).unflatten(0, (k, n)).max(dim=0)
+        better = top > sure  # ties keep the plan before
+        cands = cands.unflatten(0, (k, n))[at, torch.arange(n, device=p.device)]
+        return torch.where(better[:, None, None], cands, best), torch.where(better, top, sure)
 
     def save(self, path: str | Path, meta: dict | None = None) -> None:
         """Write weights, configuration, label names and ``meta`` (default :attr:`meta`) to one file.

@@ -18,7 +18,8 @@ of the residuals so that a torso label given to the wrong point does not tilt th
     rot = fit_rotation(points, weights, template[labels])      # (B, 3, 3): R p + t ~ template
 
 :data:`TILTS` are the 13 turns from which a frame the first stage turned the wrong way is
-oriented again (``Labeler(retry=...)``).
+oriented again, and :data:`NUDGES` the small turns tried about the orientation found
+(``Labeler(retry=...)``).
 """
 
 from __future__ import annotations
@@ -32,9 +33,13 @@ from ..geometry.procrustes import kabsch
 from ..geometry.rotations import axis_angle_to_matrix
 from .layout import MarkerLayout, place_markers
 
-__all__ = ["TILTS", "TORSO_JOINTS", "fit_rotation", "torso_template"]
+__all__ = ["NUDGES", "TILTS", "TORSO_JOINTS", "fit_rotation", "torso_template"]
 
 TORSO_JOINTS = ("Hips", "Spine1", "Spine2", "Chest")
+
+
+def _turn(axis: int, angle: float) -> torch.Tensor:
+    return axis_angle_to_matrix(torch.eye(3, dtype=torch.float64)[axis] * angle)
 
 
 def _tilts() -> torch.Tensor:
@@ -44,18 +49,17 @@ def _tilts() -> torch.Tensor:
     and the eight eighth-turn combinations X(+-45, +-135 deg) Z(+-45 deg). No turn about the
     vertical: the labelers are trained on every heading.
     """
-
-    def turn(axis: int, angle: float) -> torch.Tensor:
-        return axis_angle_to_matrix(torch.eye(3, dtype=torch.float64)[axis] * angle)
-
     quarter, eighth = math.pi / 2, math.pi / 4
-    out = [turn(0, a) for a in (quarter, -quarter, 2 * quarter)] + [turn(2, a) for a in (quarter, -quarter)]
-    out += [turn(0, a) @ turn(2, b) for a in (eighth, -eighth, 3 * eighth, -3 * eighth) for b in (eighth, -eighth)]
+    out = [_turn(0, a) for a in (quarter, -quarter, 2 * quarter)] + [_turn(2, a) for a in (quarter, -quarter)]
+    out += [_turn(0, a) @ _turn(2, b) for a in (eighth, -eighth, 3 * eighth, -3 * eighth) for b in (eighth, -eighth)]
     return torch.stack(out)
 
 
-# Where a frame the first stage could not orient is tried again (``Labeler(retry=...)``).
+# Where a frame the first stage could not orient is tried again (``Labeler(retry=...)``): TILTS
+# tip it over; NUDGES (the identity, then 20 deg either way about each axis) turn a fitted
+# orientation a little.
 TILTS = _tilts()
+NUDGES = torch.stack([torch.eye(3, dtype=torch.float64)] + [_turn(k, a) for k in range(3) for a in (0.35, -0.35)])
 
 
 def torso_template(layout: MarkerLayout) -> tuple[torch.Tensor, torch.Tensor]:
