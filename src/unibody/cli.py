@@ -224,13 +224,16 @@ def _assets_info() -> None:
 
 def run_mocap_label(src: Path, out: Path, model: str, up: str, tracklets: bool, retry: float | None = None) -> None:
     from .mocap.c3d import read_markers, write_c3d, write_npz
+    from .mocap.labeler import check_retry
     from .mocap.pipeline import label_sequence, load_labeler
 
     seq = read_markers(src)
     labeler = load_labeler(model)
     if retry is not None:
-        if not 0.0 <= retry <= 1.0 or (retry and labeler.orienter is None):
-            raise SystemExit(f"--retry: expected 0, or a confidence in (0, 1] for a two-stage labeler, got {retry}")
+        try:
+            check_retry(retry, labeler.orienter is not None)
+        except ValueError as err:
+            raise SystemExit(f"--{err}") from None
         labeler.config["retry"] = retry
     t = time.perf_counter()
     labelled = label_sequence(seq, labeler, up=up, tracklets=tracklets)

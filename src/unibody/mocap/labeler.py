@@ -156,8 +156,7 @@ class Labeler(nn.Module):
             raise ValueError(f"centre: expected 'median' or 'midrange', got {centre!r}")
         if refine < 0:
             raise ValueError(f"refine: expected >= 0, got {refine}")
-        if not 0.0 <= retry <= 1.0 or (retry and orienter is None):
-            raise ValueError(f"retry: expected 0, or a confidence in (0, 1] with an orienter, got {retry}")
+        check_retry(retry, orienter is not None)
         names = tuple(str(i) for i in range(num_labels)) if label_names is None else tuple(label_names)
         if len(names) != num_labels:
             raise ValueError(f"label_names: expected {num_labels} names, got {len(names)}")
@@ -255,8 +254,7 @@ class Labeler(nn.Module):
         retry = self.config.get("retry", 0.0) if retry is None else retry
         if refine < 0:
             raise ValueError(f"refine: expected >= 0, got {refine}")
-        if not 0.0 <= retry <= 1.0 or (retry and self.orienter is None):
-            raise ValueError(f"retry: expected 0, or a confidence in (0, 1] with an orienter, got {retry}")
+        check_retry(retry, self.orienter is not None)
         if self.orienter is None:
             return self._label(points, mask, self.centres(points, mask, "midrange" if refine else None), refine)
         rot, centre = self.orient(points, mask)
@@ -287,14 +285,15 @@ class Labeler(nn.Module):
             raise ValueError("orient: this labeler has no orienter")
         points = torch.where(mask[..., None], points, 0.0)  # padding may hold anything
         labels, confidence = predict(self.orienter(points, mask), mask)
-        return self._fit(points, mask, labels, confidence, labels != self.orienter.num_labels)
+        rot = self._torso_rotation(points, mask, labels, confidence)
+        return rot, self._marker_centres(points @ rot.transpose(1, 2), mask, labels != self.orienter.num_labels)
 
-    def _fit(self, points, mask, labels, confidence, marker) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rotation and centre (as :meth:`orient`) from orienter labels (B, N) and their confidence."""
-        known = labels.clamp_max(self.orienter.num_labels - 1)
-        weights = torch.where(mask & (labels != self.orienter.num_labels) & self.torso[known], confidence, 0.0)
-        rot = fit_rotation(points, weights, self.template[known])
-        return rot, self._marker_centres(points @ rot.transpose(1, 2), mask, marker)
+    def _torso_rotation(self, points, mask, labels, confidence) -> torch.Tensor:
+        """(B, 3, 3) fit of the points given torso labels (orienter labels, (B, N)) to the template."""
+        null = self.orienter.num_labels
+        known = labels.clamp_max(null - 1)
+        weights = torch.where(mask & (labels != null) & self.torso[known], confidence, 0.0)
+        return fit_rotation(points, weights, self.template[known])
 
     def _marker_centres(self, points, mask, marker) -> torch.Tensor:
         """:meth:`centres` of the real points ``marker`` calls markers (all of them if fewer than 3)."""
@@ -317,14 +316,13 @@ class Labeler(nn.Module):
             sure = _surety(best, m)
             k, n, null = len(TILTS), len(low), self.orienter.num_labels
             tilts = TILTS.to(p)
-            q = (p[None] @ tilts[:, None].transpose(-1, -2)).flatten(0, 1)  # (K * F, N, 3)
-            labels, conf = predict(self.orienter(q, m.repeat(k, 1), refine=0), m.repeat(k, 1))
-            rots, _ = self._fit(q, m.repeat(k, 1), labels, conf, labels != null)
-            rots = rots.unflatten(0, (k, n)) @ tilts[:, None]  # back from each tilt
+            q, mq = (p[None] @ tilts[:, None].transpose(-1, -2)).flatten(0, 1), m.repeat(k, 1)  # (K * F, N, .)
+            labels, conf = predict(self.orienter(q, mq, refine=0), mq)
+            rots = self._torso_rotation(q, mq, labels, conf).unflatten(0, (k, n))
+            rots = rots @ tilts[:, None]  # back from each tilt
             best, sure = self._surest(p, m, rots, labels.unflatten(0, (k, n)) != null, best, sure, refine)
             labels, conf = predict(best, m)
-            rot, _ = self._fit(p, m, self.to_orienter[labels], conf, labels != self.num_labels)
-            rots = NUDGES.to(p)[:, None] @ rot
+            rots = NUDGES.to(p)[:, None] @ self._torso_rotation(p, m, self.to_orienter[labels], conf)
             marker = (labels != self.num_labels).expand(len(NUDGES), -1, -1)
             best, _ = self._surest(p, m, rots, marker, best, sure, refine)
         plan = plan.clone()
@@ -413,6 +411,12 @@ def labeling_loss(log_plan: torch.Tensor, batch: MocapBatch) -> torch.Tensor:
     total = (row_w * row_logp).sum() + (w_null[:, None] * torch.where(unmatched, bin_logp, 0.0)).sum()
     count = mask.sum() + unmatched.sum()
     return -total / count.clamp(min=1)
+
+
+def check_retry(retry: float, two_stage: bool) -> None:
+    """Raise ValueError unless ``retry`` is 0, or a confidence in (0, 1] for a labeler with an orienter."""
+    if not 0.0 <= retry <= 1.0 or (retry and not two_stage):
+        raise ValueError(f"retry: expected 0, or a confidence in (0, 1] with an orienter, got {retry}")
 
 
 def _surety(log_plan: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
