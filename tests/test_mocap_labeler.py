@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from unibody.mocap import labeler
 from unibody.mocap.corrupt import MocapBatch
 from unibody.mocap.labeler import Labeler, label_frames, labeling_loss, predict
 from unibody.mocap.metrics import labeling_scores
@@ -89,6 +90,21 @@ def test_equivariance_translation_and_padding():
         n = batch.points.shape[1]
         torch.testing.assert_close(out[:, :n][batch.mask], ref[:, :n][batch.mask], atol=1e-4, rtol=1e-4)
         torch.testing.assert_close(out[:, -1], ref[:, -1], atol=1e-4, rtol=1e-4)
+
+
+def test_frames_are_independent_and_long_batches_run_in_chunks(monkeypatch):
+    batch = _toy_batch(frames=7, seed=4)
+    model = _small().eval()
+    with torch.no_grad():
+        alone = torch.cat([model(batch.points[i : i + 1], batch.mask[i : i + 1]) for i in range(7)])
+        monkeypatch.setattr(labeler, "_CHUNK", 3)  # passes of 3, 3 and 1 frames
+        torch.testing.assert_close(model(batch.points, batch.mask), alone, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(
+            model(batch.points, batch.mask, refine=2),
+            torch.cat([model(batch.points[i : i + 1], batch.mask[i : i + 1], refine=2) for i in range(7)]),
+            atol=1e-5,
+            rtol=1e-5,
+        )
 
 
 def test_loss_matches_hand_computation():

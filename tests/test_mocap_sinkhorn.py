@@ -1,4 +1,7 @@
-"""Log-domain Sinkhorn with dustbins: marginals, gradients, padding, and a plain reference."""
+"""Log-domain Sinkhorn with dustbins: marginals, gradients, padding, and a plain reference.
+
+Without gradients the iterations run on scalings (the labelling path); with gradients in the
+log domain: ``_run`` picks one, and the value tests run on both."""
 
 from __future__ import annotations
 
@@ -18,6 +21,14 @@ def _case(b=3, n=7, num_labels=5, dtype=torch.float64, seed=0, scale=1.0):
     return scores, torch.tensor(0.7, dtype=dtype), mask
 
 
+def _run(scores, bin_score, mask, iters, grad):
+    """log_sinkhorn by its log-domain path (grad=True, scores need gradients) or its scaling path."""
+    if grad:
+        return log_sinkhorn(scores.detach().requires_grad_(True), bin_score, mask, iters).detach()
+    with torch.no_grad():
+        return log_sinkhorn(scores, bin_score, mask, iters)
+
+
 def _plain_sinkhorn(scores, bin_score, mask, iters):
     """Textbook multiplicative Sinkhorn on the unnormalised marginals (the reference)."""
     b, n, num_labels = scores.shape
@@ -35,10 +46,11 @@ def _plain_sinkhorn(scores, bin_score, mask, iters):
     return a[:, :, None] * k * c[:, None, :]
 
 
+@pytest.mark.parametrize("grad", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_marginals_with_padding(dtype):
+def test_marginals_with_padding(dtype, grad):
     scores, bin_score, mask = _case(dtype=dtype, scale=2.0)
-    plan = log_sinkhorn(scores, bin_score, mask, iters=300).exp()
+    plan = _run(scores, bin_score, mask, 300, grad).exp()
     b, n, num_labels = scores.shape
     assert plan.shape == (b, n + 1, num_labels + 1)
     rows, cols = plan.sum(2), plan.sum(1)
@@ -51,23 +63,50 @@ def test_marginals_with_padding(dtype):
     assert float(plan[~torch.cat([mask, torch.ones(b, 1, dtype=torch.bool)], 1)].abs().max()) == 0.0
 
 
-def test_more_points_than_labels_and_empty_frame():
+@pytest.mark.parametrize("grad", [False, True])
+def test_more_points_than_labels_and_empty_frame(grad):
     g = torch.Generator().manual_seed(3)
     scores = torch.randn(2, 9, 4, generator=g, dtype=torch.float64)
     mask = torch.ones(2, 9, dtype=torch.bool)
     mask[1] = False  # a frame with no real points: all label mass goes to the dustbin row
-    plan = log_sinkhorn(scores, torch.tensor(1.0, dtype=torch.float64), mask, iters=200).exp()
+    plan = _run(scores, torch.tensor(1.0, dtype=torch.float64), mask, 200, grad).exp()
     torch.testing.assert_close(plan[0, :9].sum(1), torch.ones(9, dtype=torch.float64), atol=1e-4, rtol=0)
     torch.testing.assert_close(plan[0, 9].sum(), torch.tensor(4.0, dtype=torch.float64), atol=1e-4, rtol=0)
     torch.testing.assert_close(plan[1, 9, :4], torch.ones(4, dtype=torch.float64), atol=1e-6, rtol=0)
     assert float(plan[1, :9].abs().max()) == 0.0
 
 
-def test_matches_plain_sinkhorn():
+@pytest.mark.parametrize("grad", [False, True])
+def test_matches_plain_sinkhorn(grad):
     scores, bin_score, mask = _case(scale=1.0, seed=1)
     ref = _plain_sinkhorn(scores, bin_score, mask, iters=50)
-    got = log_sinkhorn(scores, bin_score, mask, iters=50).exp()
+    got = _run(scores, bin_score, mask, 50, grad).exp()
     torch.testing.assert_close(got, ref, atol=1e-10, rtol=1e-8)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_scaling_path_matches_log_path(dtype):
+    # labeler-like sizes and score spreads (rows of the shipped labelers span up to ~57)
+    scores, bin_score, mask = _case(b=16, n=44, num_labels=41, dtype=dtype, seed=4, scale=8.0)
+    mask[2] = False  # an empty frame
+    fast, slow = _run(scores, bin_score, mask, 35, False), _run(scores, bin_score, mask, 35, True)
+    real = torch.cat([mask, torch.ones(16, 1, dtype=torch.bool)], 1)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(fast.exp(), slow.exp(), atol=tol, rtol=tol)  # the dustbin corner holds ~40
+    live = real[..., None] & (slow > -1e3)  # the empty frame's dustbin column has mass 0 in both
+    torch.testing.assert_close(fast[live], slow[live], atol=1e3 * tol, rtol=0)  # logs of tiny entries: looser
+    assert bool((fast[~live] < -5e3).all())  # padding rows and no-mass entries: very negative, no mass
+
+
+def test_wide_rows_take_the_log_path():
+    # Frame 0 forces mass through entries exp(-150) below their rows' tops: float32 scalings
+    # would underflow there and drift from the log-domain plan (by ~0.01 after 300 iterations).
+    scores = torch.tensor([[[0.0, -150.0], [0.0, -150.0]], [[0.0, 0.0], [1.0, 0.0]]])
+    mask = torch.ones(2, 2, dtype=torch.bool)
+    for iters in (35, 300):
+        fast, slow = (_run(scores, torch.tensor(-100.0), mask, iters, g) for g in (False, True))
+        torch.testing.assert_close(fast.exp(), slow.exp(), atol=1e-6, rtol=0)
+        assert torch.isfinite(fast).all()
 
 
 def test_strong_scores_pick_the_permutation():

@@ -15,6 +15,12 @@ Notation, for one frame b with N point slots of which n_b are real, and L labels
 
 Padding slots get a very negative (finite) log-marginal instead of -inf: their plan rows
 underflow to exactly 0 mass, and neither the forward values nor the gradients hold NaN.
+
+Without gradients (labelling), the same iterations run on scalings instead of
+log-scalings: u = mu / (K v), v = nu / (K^T u) with K = exp(Z - row max), batched
+mat-vec products instead of log-sum-exps, several times faster on CPU. The iterates are the
+same up to rounding. Frames whose rows span more than 0.7 of the float exponent range
+(62 in float32) or whose scalings leave it are computed in the log domain.
 """
 
 from __future__ import annotations
@@ -86,9 +92,42 @@ def log_sinkhorn(
     log_bin_col = torch.where(n_valid > 0, torch.log(n_valid.clamp(min=1)) + log_norm, neg)
     log_nu = torch.cat([log_norm[:, None].expand(b, num_labels), log_bin_col[:, None]], dim=1)  # (B, L+1)
 
+    if torch.is_grad_enabled() and (scores.requires_grad or bin_score.requires_grad):
+        u, v = _log_iterations(z, log_mu, log_nu, iters)
+    else:
+        u, v = _scaling_iterations(z, log_mu, log_nu, iters)
+    return z + u[:, :, None] + v[:, None, :] - log_norm[:, None, None]
+
+
+def _log_iterations(z, log_mu, log_nu, iters: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Log-scalings u (B, N+1), v (B, L+1) of the plan z + u + v, by log-sum-exps (differentiable, stable)."""
     u = torch.zeros_like(log_mu)
     v = torch.zeros_like(log_nu)
     for _ in range(iters):
         u = log_mu - torch.logsumexp(z + v[:, None, :], dim=2)
         v = log_nu - torch.logsumexp(z + u[:, :, None], dim=1)
-    return z + u[:, :, None] + v[:, None, :] - log_norm[:, None, None]
+    return u, v
+
+
+def _scaling_iterations(z, log_mu, log_nu, iters: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_log_iterations` by multiplicative updates; frames that leave the float range are redone."""
+    top = z.amax(dim=2, keepdim=True)
+    k = torch.exp(z - top)  # each row's largest entry is 1; the dustbin row is all ones
+    mu, nu = log_mu.exp(), log_nu.exp()  # padding rows and the empty frame's dustbin column: exactly 0
+    a = torch.ones_like(mu)
+    c = torch.ones_like(nu)
+    for _ in range(iters):
+        a = mu / (k @ c[..., None])[..., 0]
+        c = nu / (k.transpose(1, 2) @ a[..., None])[..., 0]
+    u = (torch.log(a) - top[..., 0]).clamp_min(_NEG)
+    v = torch.log(c).clamp_min(_NEG)
+    # Entries more than 0.7 of the exponent range below their row's top could underflow, and
+    # the scalings that balance them could overflow: such frames (none in our labelers' output,
+    # whose rows span < 60) and any frame whose scalings did leave the range take the log domain.
+    narrow = ((top - z.amin(dim=2, keepdim=True))[..., 0] <= 0.7 * math.log(torch.finfo(z.dtype).max)) | (mu == 0)
+    ok = narrow.all(dim=1) & (torch.isfinite(a) & ((a > 0) | (mu == 0))).all(dim=1)
+    ok &= (torch.isfinite(c) & ((c > 0) | (nu == 0))).all(dim=1)
+    if not bool(ok.all()):
+        bad = (~ok).nonzero()[:, 0]
+        u[bad], v[bad] = _log_iterations(z[bad], log_mu[bad], log_nu[bad], iters)
+    return u, v
