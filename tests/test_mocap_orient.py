@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from unibody.geometry.rotations import axis_angle_to_matrix, rotation_angle
-from unibody.mocap.labeler import Labeler, predict
+from unibody.mocap.labeler import Labeler, _distinct, _surety, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.orient import NUDGES, TILTS, fit_rotation, torso_template
 from unibody.mocap.synthetic import POSE
@@ -234,3 +234,39 @@ def test_retry_never_leaves_a_frame_less_sure_and_keeps_the_sure_ones(tmp_path):
         Labeler(8, retry=0.5)  # no orienter
     with pytest.raises(ValueError, match="retry: expected 0, or a confidence in"):
         model(pts, mask, retry=1.5)
+
+
+def test_distinct_drops_turns_within_two_degrees_of_an_earlier_one_of_the_same_frame():
+    def turn(deg):
+        return axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.radians(deg)], dtype=torch.float64))
+
+    r = _rotations(1, seed=5)[0]
+    frame0 = [r, r @ turn(1.0), r @ turn(5.0), r, TILTS[0] @ r]
+    frame1 = [r @ turn(3.0), r, r @ turn(1.5), r @ turn(90.0), r]
+    rots = torch.stack([torch.stack(pair) for pair in zip(frame0, frame1, strict=True)])  # (K=5, F=2, 3, 3)
+    assert _distinct(rots).tolist() == [[True, True], [False, True], [True, False], [False, True], [True, False]]
+
+
+def test_surest_labels_the_kept_candidates_and_returns_the_surest_of_them():
+    model = _two_stage(seed=3).eval()
+    g = torch.Generator().manual_seed(4)
+    pts, mask = torch.randn(5, 10, 3, generator=g), torch.ones(5, 10, dtype=torch.bool)
+    mask[2, 7:] = False
+    rots = _rotations(20, seed=6, dtype=torch.float32).view(4, 5, 3, 3)
+    marker = torch.rand(4, 5, 10, generator=g) < 0.8
+    keep = torch.rand(4, 5, generator=g) < 0.6
+    keep[0] = True
+    with torch.no_grad():
+        best = model(pts, mask, retry=0.0)
+        sure = torch.zeros(5)  # every frame takes its surest kept candidate
+        got, got_sure = model._surest(pts, mask, rots, marker, best, sure, 0, keep)
+        for f in range(5):
+            alone = []
+            for k in keep[:, f].nonzero()[:, 0].tolist():
+                p = pts[f : f + 1] @ rots[k, f].T
+                c = model._marker_centres(p, mask[f : f + 1], marker[k, f][None])
+                plan = model._label(p, mask[f : f + 1], c, 0)
+                alone.append((float(_surety(plan, mask[f : f + 1])), plan[0]))
+            top, plan = max(alone, key=lambda x: x[0])
+            assert got_sure[f].item() == pytest.approx(top, abs=1e-5)
+            torch.testing.assert_close(got[f], plan, atol=1e-4, rtol=1e-4)

@@ -38,6 +38,7 @@ thousands of frames per second on two CPU threads.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -311,8 +312,10 @@ class Labeler(nn.Module):
         """Orient again the frames whose mean confidence in ``plan`` is below ``retry``; keep the surest plan.
 
         Candidates: the orienter's labels (one pass) of the frame turned by each of
-        :data:`~unibody.mocap.orient.TILTS`; then the fit of this labeler's own labels of the
-        best so far, turned by each of :data:`~unibody.mocap.orient.NUDGES`.
+        :data:`~unibody.mocap.orient.TILTS` (a fit within 2 degrees of an earlier one of the
+        frame is not labelled again: the 13 tilts of an unsure frame fit to about 5 distinct
+        orientations); then the fit of this labeler's own labels of the best so far, turned by
+        each of :data:`~unibody.mocap.orient.NUDGES`.
         """
         low = (_surety(plan, mask) < retry).nonzero()[:, 0]
         if not len(low):
@@ -327,7 +330,8 @@ class Labeler(nn.Module):
             labels, conf = predict(self.orienter(q, mq, refine=0), mq)
             rots = self._torso_rotation(q, mq, labels, conf).unflatten(0, (k, n))
             rots = rots @ tilts[:, None]  # back from each tilt
-            best, sure = self._surest(p, m, rots, labels.unflatten(0, (k, n)) != null, best, sure, refine)
+            marker = labels.unflatten(0, (k, n)) != null
+            best, sure = self._surest(p, m, rots, marker, best, sure, refine, _distinct(rots))
             labels, conf = predict(best, m)
             rots = NUDGES.to(p)[:, None] @ self._torso_rotation(p, m, self.to_orienter[labels], conf)
             marker = (labels != self.num_labels).expand(len(NUDGES), -1, -1)
@@ -336,17 +340,24 @@ class Labeler(nn.Module):
         plan[low] = best
         return plan
 
-    def _surest(self, p, m, rots, marker, best, sure, refine: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def _surest(self, p, m, rots, marker, best, sure, refine: int, keep=None) -> tuple[torch.Tensor, torch.Tensor]:
         """Label frames p (F, N, 3) in K orientations rots (K, F, 3, 3), each centred on the points
-        ``marker`` (K, F, N) calls markers; keep a candidate where it is surer than ``best``."""
+        ``marker`` (K, F, N) calls markers, where ``keep`` (K, F; default all) says so; keep a
+        candidate where it is surer than ``best``."""
         k, n = rots.shape[:2]
-        mk = m.repeat(k, 1)
-        pts = p.repeat(k, 1, 1) @ rots.flatten(0, 1).transpose(1, 2)
-        cands = self._label(pts, mk, self._marker_centres(pts, mk, marker.flatten(0, 1)), refine)
-        top, at = _surety(cands, mk).unflatten(0, (k, n)).max(dim=0)
+        keep = torch.ones(k, n, dtype=torch.bool, device=p.device) if keep is None else keep
+        cand, frame = keep.nonzero().unbind(1)  # row-major: candidates of a frame in order
+        mk = m[frame]
+        pts = p[frame] @ rots[cand, frame].transpose(1, 2)
+        cands = self._label(pts, mk, self._marker_centres(pts, mk, marker[cand, frame]), refine)
+        surety = torch.full((k, n), -1.0, dtype=sure.dtype, device=p.device)
+        surety[cand, frame] = _surety(cands, mk)
+        top, at = surety.max(dim=0)
         better = top > sure  # ties keep the plan before
-        cands = cands.unflatten(0, (k, n))[at, torch.arange(n, device=p.device)]
-        return torch.where(better[:, None, None], cands, best), torch.where(better, top, sure)
+        row = torch.full((k, n), -1, dtype=torch.long, device=p.device)
+        row[cand, frame] = torch.arange(len(cand), device=p.device)
+        chosen = cands[row[at, torch.arange(n, device=p.device)]]
+        return torch.where(better[:, None, None], chosen, best), torch.where(better, top, sure)
 
     def save(self, path: str | Path, meta: dict | None = None) -> None:
         """Write weights, configuration, label names and ``meta`` (default :attr:`meta`) to one file.
@@ -424,6 +435,16 @@ def check_retry(retry: float, two_stage: bool) -> None:
     """Raise ValueError unless ``retry`` is 0, or a confidence in (0, 1] for a labeler with an orienter."""
     if not 0.0 <= retry <= 1.0 or (retry and not two_stage):
         raise ValueError(f"retry: expected 0, or a confidence in (0, 1] with an orienter, got {retry}")
+
+
+def _distinct(rots: torch.Tensor, degrees: float = 2.0) -> torch.Tensor:
+    """(K, F) bool: rotation k of frame f (rots (K, F, 3, 3)) is more than ``degrees`` from each
+    earlier one of that frame (most tilts of an unsure frame fit to one of a few orientations)."""
+    # cos(angle between Ri and Rj) = (trace(Ri^T Rj) - 1) / 2
+    trace = torch.einsum("ifab,jfab->ijf", rots, rots)
+    near = trace > 1.0 + 2.0 * math.cos(math.radians(degrees))
+    earlier = torch.ones(len(rots), len(rots), dtype=torch.bool, device=rots.device).tril(-1)
+    return ~(near & earlier[..., None]).any(dim=1)
 
 
 def _surety(log_plan: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
