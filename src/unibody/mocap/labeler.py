@@ -72,7 +72,7 @@ class _Block(nn.Module):
         self.qkv = nn.Linear(width, 3 * width)
         self.proj = nn.Linear(width, width)
         self.norm2 = nn.LayerNorm(width)
-        self.ffn = nn.Sequential(nn.Linear(width, 2 * width), nn.ReLU(), nn.Linear(2 * width, width))
+        self.ffn = nn.Sequential(nn.Linear(width, 2 * width), nn.ReLU(inplace=True), nn.Linear(2 * width, width))
 
     def forward(self, x: torch.Tensor, key_bias: torch.Tensor) -> torch.Tensor:
         """x (B, N, W); key_bias (B, 1, 1, N): 0 where a point may be attended to, very negative elsewhere."""
@@ -170,9 +170,11 @@ class Labeler(nn.Module):
                        "sinkhorn_iters": sinkhorn_iters, "centre": centre, "refine": refine,
                        "retry": float(retry)}  # fmt: skip
         self.meta: dict = {}
-        self.embed = nn.Sequential(nn.Linear(3, width), nn.ReLU(), nn.Linear(width, width))
+        self.embed = nn.Sequential(nn.Linear(3, width), nn.ReLU(inplace=True), nn.Linear(width, width))
         self.blocks = nn.ModuleList(_Block(width, heads) for _ in range(layers))
-        self.head = nn.Sequential(nn.LayerNorm(width), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, num_labels))
+        self.head = nn.Sequential(
+            nn.LayerNorm(width), nn.Linear(width, width), nn.ReLU(inplace=True), nn.Linear(width, num_labels)
+        )
         self.bin_score = nn.Parameter(torch.tensor(1.0))
         self.orienter = orienter
         if orienter is not None:
