@@ -47,6 +47,7 @@ import torch
 from torch import nn
 
 from .._checks import check_finite, check_like, check_shape
+from ..geometry.rotations import rotation_angle
 from .orient import NUDGES, TILTS, fit_rotation
 from .sinkhorn import log_sinkhorn
 
@@ -356,8 +357,7 @@ class Labeler(nn.Module):
         surety[cand, frame] = _surety(cands, mk)
         top, at = surety.max(dim=0)
         better = top > sure  # ties keep the plan before
-        row = torch.full((k, n), -1, dtype=torch.long, device=p.device)
-        row[cand, frame] = torch.arange(len(cand), device=p.device)
+        row = keep.flatten().cumsum(0).view(k, n) - 1  # each kept candidate's row in cands
         chosen = cands[row[at, torch.arange(n, device=p.device)]]
         return torch.where(better[:, None, None], chosen, best), torch.where(better, top, sure)
 
@@ -442,9 +442,7 @@ def check_retry(retry: float, two_stage: bool) -> None:
 def _distinct(rots: torch.Tensor, degrees: float = 2.0) -> torch.Tensor:
     """(K, F) bool: rotation k of frame f (rots (K, F, 3, 3)) is more than ``degrees`` from each
     earlier one of that frame (most tilts of an unsure frame fit to one of a few orientations)."""
-    # cos(angle between Ri and Rj) = (trace(Ri^T Rj) - 1) / 2
-    trace = torch.einsum("ifab,jfab->ijf", rots, rots)
-    near = trace > 1.0 + 2.0 * math.cos(math.radians(degrees))
+    near = rotation_angle(rots[:, None].transpose(-1, -2) @ rots[None]) < math.radians(degrees)  # (K, K, F)
     earlier = torch.ones(len(rots), len(rots), dtype=torch.bool, device=rots.device).tril(-1)
     return ~(near & earlier[..., None]).any(dim=1)
 
