@@ -58,9 +58,10 @@ __all__ = ["LABELER_FORMAT", "Labeler", "label_frames", "labeling_loss", "predic
 
 LABELER_FORMAT = "unibody.labeler/1"
 _NEG_BIAS = -1.0e9  # attention logit of padding keys: softmax weight exactly 0
-# Frames per pass: larger batches (retries label 13 or 7 orientations of each retried frame at
-# once) run 15-20 % slower per frame on a 2-core CPU (measured, torch 2.13).
-_CHUNK = 256
+# Frames per pass: the activations of a pass then stay in cache (96 frames of ~45 points: 5 MB
+# for the widest). On a 2-core CPU, torch 2.13, 256 real frames label 15-20 % faster in passes of
+# 64-128 frames than of 256; a 377-frame pass is slower still (benchmarks/README.md).
+_CHUNK = 96
 
 
 class _Block(nn.Module):
