@@ -67,13 +67,20 @@ def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, id
         for joint in ("Neck1", "Neck2", "Head"):
             lo, hi, relaxed = ranges[joint]
             ranges[joint] = ((*lo[:2], -args.neck_roll), (*hi[:2], args.neck_roll), relaxed)
+    segments = SyntheticConfig.segments
+    for suffix, lo, hi in args.slide:  # --slide SUFFIX LO HI: that rule's range along its bone
+        if suffix not in [rule[0] for rule in segments]:
+            raise SystemExit(f"--slide: expected one of {[rule[0] for rule in segments]}, got {suffix!r}")
+        if not 0 <= float(lo) <= float(hi):
+            raise SystemExit(f"--slide {suffix}: expected 0 <= LO <= HI, got {lo} {hi}")
+        segments = tuple((*r[:3], float(lo), float(hi)) if r[0] == suffix else r for r in segments)
     cfg = SyntheticConfig(
         identities=identities, pool_seed=pool_seed, subsets=subs, extras=args.extras,
         extra_distance=(args.extra_distance[0], args.extra_distance[1]), stick_prob=args.stick_prob,
         extra_prob=args.extra_prob, extra_clusters=args.extra_clusters, cluster_size=args.cluster_size,
         cluster_radius=args.cluster_radius,
         stature_prob=args.stature_prob, bands=HEAD_BANDS if args.head_bands else (),
-        pose={**POSE, "ranges": ranges},
+        pose={**POSE, "ranges": ranges}, segments=segments,
         **({} if args.fitted is None else {"fitted": True, "jitter_radius": args.fitted}),
     )  # fmt: skip
     return SyntheticMocap(layout, cfg)
@@ -144,6 +151,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--stick-prob", type=float, default=0.5, help="fraction of samples with wrist bars")
     p.add_argument("--head-bands", action="store_true", help="head markers anywhere around the head (HEAD_BANDS)")
     p.add_argument("--neck-roll", type=float, metavar="RAD", help="rad, each neck joint and the head tilt sideways")
+    p.add_argument(
+        "--slide", nargs=3, action="append", default=[], metavar=("SUFFIX", "LO", "HI"),
+        help="a segment rule's range along its bone (SyntheticConfig.segments), e.g. --slide FIN 0.1 1.0",
+    )  # fmt: skip
     p.add_argument(
         "--fitted", type=float, metavar="RADIUS",
         help="m: a session layout is fitted, so markers stay within RADIUS of their vertex, at their distance",
