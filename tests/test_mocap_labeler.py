@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import math
 from pathlib import Path
@@ -12,7 +13,9 @@ import torch
 from unibody.mocap import labeler
 from unibody.mocap.corrupt import MocapBatch
 from unibody.mocap.labeler import Labeler, label_frames, labeling_loss, predict
+from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.metrics import labeling_scores
+from unibody.mocap.synthetic import SyntheticConfig
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "train_labeler.py"
 
@@ -239,6 +242,24 @@ def test_training_script_resumes_bit_identically(tmp_path):
     mod.main(_args(tmp_path / "c", 4))
     c = Labeler.load(tmp_path / "c" / "labeler.pt")
     assert not torch.equal(c.bin_score, a.bin_score)
+
+
+def test_training_script_slide_sets_one_segment_range():
+    """``--slide FIN 0.1 1.0`` changes that rule's range along its bone and no other rule; an unknown
+    suffix or a range with LO > HI is refused."""
+    mod = _script()
+    base = dict(subsets=[], neck_roll=None, extras=0, extra_distance=(0.03, float("inf")), stick_prob=0.9,
+                extra_prob=0.3, extra_clusters=0.0, cluster_size=3, cluster_radius=0.08, stature_prob=0.75,
+                head_bands=False, fitted=None)  # fmt: skip
+    layout = MarkerLayout.load("cmu41")
+    syn = mod.synthetic(argparse.Namespace(**base, slide=[["FIN", "0.1", "1.0"]]), layout, 0, 4)
+    default = SyntheticConfig.segments
+    assert [r for r in syn.config.segments if r[0] == "FIN"] == [("FIN", "Hand", "HandMiddle2", 0.1, 1.0)]
+    assert [r for r in syn.config.segments if r[0] != "FIN"] == [r for r in default if r[0] != "FIN"]
+    assert [r for r in default if r[0] == "FIN"] != [("FIN", "Hand", "HandMiddle2", 0.1, 1.0)]
+    for bad in (["FINGER", "0.1", "1.0"], ["FIN", "0.9", "0.1"]):
+        with pytest.raises(SystemExit, match="--slide"):
+            mod.synthetic(argparse.Namespace(**base, slide=[bad]), layout, 0, 4)
 
 
 def test_midrange_centre_ignores_a_crowd_of_extra_points(tmp_path):
