@@ -263,6 +263,19 @@ def label_section(root: Path, models: dict[str, Labeler], seed: int, sessions: d
         print(f"| {name} | " + " | ".join(cells) + " |")
 
 
+def _gemm_rate(rounds: int) -> str:
+    """float32 GFLOP/s of the labeler's widest product (a 256-frame pass's q/k/v projection), best / median."""
+    x, w, bias = torch.randn(256 * 44, 96), torch.randn(96, 288), torch.randn(288)
+    torch.addmm(bias, x, w)  # warm-up
+    rates = []
+    for _ in range(rounds):
+        t = time.perf_counter()
+        for _ in range(20):
+            torch.addmm(bias, x, w)
+        rates.append(20 * 2 * x.shape[0] * 96 * 288 / (time.perf_counter() - t) / 1e9)
+    return f"addmm (11264, 96) @ (96, 288) at {max(rates):.0f} / {float(np.median(rates)):.0f} GFLOP/s, best / median"
+
+
 def speed_section(root: Path, models: dict[str, Labeler], seed: int, rounds: int = 5) -> None:
     """Frames/s on 256 frames spread over each model's files, corrupted as per-frame C+G.
 
@@ -271,6 +284,7 @@ def speed_section(root: Path, models: dict[str, Labeler], seed: int, rounds: int
     by tens of percent between runs: the best round is the least disturbed one).
     """
     print(f"\n## Labeling speed (CPU, {torch.get_num_threads()} threads; forward + decoding, real frames)")
+    print(f"Machine reference (this VM's speed moves between runs): {_gemm_rate(rounds)}.\n")
     print(f"| model | parameters | retry | batch | frames/s, best / median of {rounds} rounds |\n|---|---|---|---|---|")
     gen = torch.Generator().manual_seed(seed)
     for name, model in models.items():
