@@ -58,9 +58,9 @@ __all__ = ["LABELER_FORMAT", "Labeler", "label_frames", "labeling_loss", "predic
 
 LABELER_FORMAT = "unibody.labeler/1"
 _NEG_BIAS = -1.0e9  # attention logit of padding keys: softmax weight exactly 0
-# Frames per pass: the activations of a pass then stay in cache (96 frames of ~45 points: 5 MB
-# for the widest). On a 2-core CPU, torch 2.13, 256 real frames label 15-20 % faster in passes of
-# 64-128 frames than of 256; a 377-frame pass is slower still (benchmarks/README.md).
+# Frames per pass. On a 2-core CPU (torch 2.13), 256 real frames labelled in passes of 64-128
+# frames ran 10-20 % faster than in one pass of 256, or as fast when the VM was slow; a 377-frame
+# pass was slower still (benchmarks/README.md). Frames are independent: the plans are the same.
 _CHUNK = 96
 
 
