@@ -67,13 +67,18 @@ def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, id
         for joint in ("Neck1", "Neck2", "Head"):
             lo, hi, relaxed = ranges[joint]
             ranges[joint] = ((*lo[:2], -args.neck_roll), (*hi[:2], args.neck_roll), relaxed)
-    segments = SyntheticConfig.segments
-    for suffix, lo, hi in args.slide:  # --slide SUFFIX LO HI: that rule's range along its bone
-        if suffix not in [rule[0] for rule in segments]:
-            raise SystemExit(f"--slide: expected one of {[rule[0] for rule in segments]}, got {suffix!r}")
-        if not 0 <= float(lo) <= float(hi):
-            raise SystemExit(f"--slide {suffix}: expected 0 <= LO <= HI, got {lo} {hi}")
-        segments = tuple((*r[:3], float(lo), float(hi)) if r[0] == suffix else r for r in segments)
+    slides = {}  # --slide SUFFIX LO HI: that segment rule's range along its bone
+    for suffix, *span in args.slide:
+        try:
+            lo, hi = map(float, span)
+        except ValueError:
+            lo = hi = math.nan
+        if not 0 <= lo <= hi:
+            raise SystemExit(f"--slide {suffix}: expected numbers 0 <= LO <= HI, got {' '.join(span)}")
+        slides[suffix] = (lo, hi)
+    segments = tuple((*r[:3], *slides.pop(r[0])) if r[0] in slides else r for r in SyntheticConfig.segments)
+    if slides:
+        raise SystemExit(f"--slide: expected one of {[r[0] for r in segments]}, got {sorted(slides)}")
     cfg = SyntheticConfig(
         identities=identities, pool_seed=pool_seed, subsets=subs, extras=args.extras,
         extra_distance=(args.extra_distance[0], args.extra_distance[1]), stick_prob=args.stick_prob,
