@@ -85,7 +85,7 @@ def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, id
         extra_prob=args.extra_prob, extra_clusters=args.extra_clusters, cluster_size=args.cluster_size,
         cluster_radius=args.cluster_radius,
         stature_prob=args.stature_prob, bands=HEAD_BANDS if args.head_bands else (),
-        pose={**POSE, "ranges": ranges}, segments=segments,
+        pose={**POSE, "ranges": ranges, **({} if args.fold is None else {"fold": args.fold})}, segments=segments,
         **({} if args.fitted is None else {"fitted": True, "jitter_radius": args.fitted}),
     )  # fmt: skip
     return SyntheticMocap(layout, cfg)
@@ -156,6 +156,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--stick-prob", type=float, default=0.5, help="fraction of samples with wrist bars")
     p.add_argument("--head-bands", action="store_true", help="head markers anywhere around the head (HEAD_BANDS)")
     p.add_argument("--neck-roll", type=float, metavar="RAD", help="rad, each neck joint and the head tilt sideways")
+    p.add_argument("--fold", type=float, metavar="FRACTION", help="fraction of poses folded at the hips")
     p.add_argument(
         "--slide", nargs=3, action="append", default=[], metavar=("SUFFIX", "LO", "HI"),
         help="a segment rule's range along its bone (SyntheticConfig.segments), e.g. --slide FIN 0.1 1.0",

@@ -365,6 +365,39 @@ def test_sample_poses_chamber_brings_the_fist_to_the_waist():
         sample_poses(2, g(), chamber=-0.1)
 
 
+def test_sample_poses_fold_closes_the_hips():
+    """fold=1 flexes both hips 1.2-2.0 rad (the right within 0.2 of the left), each knee 0-2.3 rad
+    and the spine forward within its range, so the trunk-thigh marker angle (SHO-FWT-KNE) is
+    under 105 deg in most samples (the default recipe: one in twenty); fold=0 leaves the stream
+    as it was; other joints keep their draws."""
+    g = torch.Generator
+    a = sample_poses(256, g().manual_seed(9), bend=0.3, arms_alike=0.4, chamber=0.2)
+    assert torch.equal(a, sample_poses(256, g().manual_seed(9), bend=0.3, arms_alike=0.4, chamber=0.2, fold=0.0))
+    b = sample_poses(256, g().manual_seed(9), bend=0.3, arms_alike=0.4, chamber=0.2, fold=1.0)
+    hip = {s: b[:, joint_index(s + "Leg") - 1, 0] for s in ("Left", "Right")}
+    assert hip["Left"].max() <= -1.2 and hip["Left"].min() >= -2.0 - 1e-6
+    assert (hip["Right"] - hip["Left"]).abs().max() <= 0.2 + 1e-6 and hip["Right"].min() >= -2.0
+    for side in ("Left", "Right"):
+        knee = b[:, joint_index(side + "Shin") - 1, 0]
+        assert knee.min() >= 0 and knee.max() <= 2.3 and knee.max() - knee.min() > 2.0
+    for name, top in (("Spine1", 0.35), ("Spine2", 0.35), ("Chest", 0.25)):
+        flex = b[:, joint_index(name) - 1, 0]
+        assert flex.min() >= 0 and flex.max() <= top
+    head = joint_index("Head") - 1
+    assert torch.equal(a[:, head], b[:, head])
+    lay = MarkerLayout.load("cmu41")
+    closed = {}
+    for f in (0.0, 1.0):
+        cfg = SyntheticConfig(identities=8, noise=(0.0, 0.0), pose=dict(POSE, fold=f))
+        m = SyntheticMocap(lay, cfg).markers(1000, g().manual_seed(0))
+        u, v = (m[:, lay.index(x)] - m[:, lay.index("LFWT")] for x in ("LSHO", "LKNE"))
+        angle = torch.rad2deg(torch.acos(torch.nn.functional.cosine_similarity(u, v, dim=-1).clamp(-1, 1)))
+        closed[f] = float((angle < 105).float().mean())
+    assert closed[0.0] < 0.1 and closed[1.0] > 0.6, closed
+    with pytest.raises(ValueError, match="fold"):
+        sample_poses(2, g(), fold=1.5)
+
+
 def test_sample_poses_range_overrides():
     """A ranges entry replaces that joint's range; other joints keep theirs; unknown joints fail."""
     wide = {"Head": ((-0.2, -1.0, -0.15), (0.3, 1.0, 0.15), (0.0, 0.0, 0.0))}

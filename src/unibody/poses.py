@@ -95,6 +95,7 @@ def sample_poses(
     arms_alike: float = 0.0,
     bend: float = 0.0,
     chamber: float = 0.0,
+    fold: float = 0.0,
     fingers: bool = True,
     ranges: dict[str, tuple[tuple[float, float, float], ...]] | None = None,
     dtype: torch.dtype = torch.float32,
@@ -124,6 +125,11 @@ def sample_poses(
             lowered 1.25-1.5 rad and drawn back 0.2-0.8 rad, the elbow flexed 1.4-2.3 rad
             (martial-arts chambers, hands on the hips, running arms). ``bend`` swings bent
             arms about the vertical, which seldom brings the hand beside the waist.
+        fold: fraction of samples folded at the hips: both hips flexed 1.2-2.0 rad (the
+            right as the left +-0.2), each knee 0-2.3 rad, the spine and chest flexed forward up
+            to their range (sitting on the floor, squats, tucks, pikes). The independent draws
+            close the angle between trunk and thigh under 105 deg in 5 % of the samples; floor
+            work holds it there for a fifth of its frames.
         fingers: whether fingers curl (else they stay straight, as in the T-pose).
         ranges: entries that replace those of :data:`JOINT_RANGES` (same format, left-side names).
         dtype: float32 or float64.
@@ -145,6 +151,8 @@ def sample_poses(
         raise ValueError(f"bend: expected a fraction in [0, 1], got {bend}")
     if not 0.0 <= chamber <= 1.0:
         raise ValueError(f"chamber: expected a fraction in [0, 1], got {chamber}")
+    if not 0.0 <= fold <= 1.0:
+        raise ValueError(f"fold: expected a fraction in [0, 1], got {fold}")
     index = {name: i - 1 for i, name in enumerate(JOINT_NAMES)}  # pose rows are joints 1..77
     pose = torch.zeros(n, len(JOINT_NAMES) - 1, 3, dtype=dtype)
     amp = min_amplitude + (1.0 - min_amplitude) * torch.rand(n, 1, generator=generator, dtype=dtype)
@@ -228,4 +236,15 @@ def sample_poses(
             left, right = index["Left" + name], index["Right" + name]
             noise = 0.15 * (2 * torch.rand(n, 3, generator=generator, dtype=dtype) - 1)
             pose[:, right] = torch.where(alike, _mirror(pose[:, left]) + noise, pose[:, right])
+    if fold > 0:  # drawn last: the streams without it are unchanged
+        u = torch.rand(n, 7, generator=generator, dtype=dtype)  # whether, hip, right hip, 2 knees, spine, chest
+        on = u[:, 0] < fold
+        lo = table["LeftLeg"][0][0]
+        hip = -(1.2 + 0.8 * u[:, 1])
+        flex = {"LeftLeg": hip, "RightLeg": (hip + 0.4 * u[:, 2] - 0.2).clamp(lo, 0.0)}
+        flex |= {"LeftShin": 2.3 * u[:, 3], "RightShin": 2.3 * u[:, 4]}
+        for k, name in ((5, "Spine1"), (5, "Spine2"), (6, "Chest")):  # forward, up to the range's end
+            flex[name] = table[name][1][0] * u[:, k]
+        for name, value in flex.items():
+            pose[:, index[name], 0] = torch.where(on, value, pose[:, index[name], 0])
     return pose
