@@ -1,7 +1,7 @@
 """Mocap labeling and body solve on real, labelled C3D files (paper 003 protocol; evaluation only).
 
     OMP_NUM_THREADS=2 python benchmarks/mocap.py [--evaldata ../shared/evaldata] [--sections label speed solve]
-        [--session pycgm=build/s2_pycgm/labeler.pt tennis=build/s2_tennis/labeler.pt] [--retry R]
+        [--session pycgm=build/s2_pycgm/labeler.pt tennis=build/s2_tennis/labeler.pt] [--retry R] [--bf16]
 
 Labels are hidden from the labeler and used only to score it. Files: CMU 85_02, 85_12, 135_02
 (CMU 41 layout, ``cmu41`` model); BTKData Plug-in Gait walking / static (35 markers), pyCGM
@@ -25,7 +25,8 @@ points in a file are real ghosts (truth: null).
   spread over each model's files, corrupted as per-frame C+G, with the two-stage labelers'
   retry confidence (their cost depends on the frames) and without retries; best and median
   of 5 rounds.
-- ``--retry R`` sets the two-stage labelers' retry confidence (0: no retries).
+- ``--retry R`` sets the two-stage labelers' retry confidence (0: no retries); ``--bf16`` runs
+  the labelers' networks in bfloat16 (``Labeler.set_autocast``; fast on CPUs with AMX).
 - **solve**: the body solve on the files' own labels: mean / median marker residual,
   fraction of frames solved, frames/s of the whole solve; a PNG of one solved frame.
 """
@@ -342,6 +343,7 @@ def main() -> None:
     p.add_argument("--cmu41", default="cmu41", help="labeler weights (name or path)")
     p.add_argument("--pig39", default="pig39", help="labeler weights (name or path)")
     p.add_argument("--retry", type=float, help="two-stage labelers: override the weights' retry confidence (0: off)")
+    p.add_argument("--bf16", action="store_true", help="labelers' networks in bfloat16 (Labeler.set_autocast)")
     p.add_argument("--session", nargs="*", default=[], metavar="KEY=WEIGHTS",
                    help="the files whose name holds KEY also by this session-layout labeler")  # fmt: skip
     args = p.parse_args()
@@ -355,10 +357,11 @@ def main() -> None:
     models = {"cmu41": load_labeler(args.cmu41), "pig39": load_labeler(args.pig39)}
     sessions = {k: load_labeler(w) for k, _, w in (x.partition("=") for x in args.session)}
     for m in (*models.values(), *sessions.values()):
-        m.eval()
+        m.eval().set_autocast(torch.bfloat16 if args.bf16 else None)
         if args.retry is not None and m.orienter is not None:
             m.config["retry"] = args.retry
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    bf16 = ", networks in bfloat16" if args.bf16 else ""
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads{bf16}")
     if "label" in args.sections:
         label_section(args.evaldata, models, args.seed, sessions)
     if "speed" in args.sections:

@@ -92,6 +92,27 @@ def test_shipped_retry_rights_frames_the_first_stage_turned_the_wrong_way():
     assert acc[0.0] < 0.5 and acc[0.9] > upright - 0.01 and upright > 0.93, (acc, upright)
 
 
+def test_bfloat16_autocast_labels_as_float32_does():
+    """set_autocast(torch.bfloat16) runs both stages' networks in bfloat16: the plan stays float32
+    and the labels of held-out frames agree with float32's on nearly every point, as accurately;
+    set_autocast(None) gives float32's plans back exactly; other dtypes are refused."""
+    model = load_labeler("cmu41").eval()
+    b = SyntheticMocap(MarkerLayout.load("cmu41"), SyntheticConfig(identities=16, pool_seed=777)).sample(
+        64, torch.Generator().manual_seed(4245)
+    )
+    with torch.no_grad():
+        plan32 = model(b.points, b.mask)
+        plan16 = model.set_autocast(torch.bfloat16)(b.points, b.mask)
+        assert model.orienter.autocast is torch.bfloat16 and plan16.dtype == torch.float32
+        assert not torch.equal(plan16, plan32)
+        assert torch.equal(model.set_autocast(None)(b.points, b.mask), plan32)
+    (p32, _), (p16, _) = predict(plan32, b.mask), predict(plan16, b.mask)
+    acc = [float((p == b.labels)[b.mask].float().mean()) for p in (p32, p16)]
+    assert float((p16 == p32)[b.mask].float().mean()) > 0.98 and acc[1] > acc[0] - 0.01 and acc[0] > 0.9, acc
+    with pytest.raises(ValueError, match="dtype: expected None, torch.bfloat16 or torch.float16, got torch.float64"):
+        model.set_autocast(torch.float64)
+
+
 def test_refine_recentres_on_the_markers_when_extra_points_crowd_the_feet():
     """30 extra points 5-12 cm around the foot markers pull the median centre down and the labels
     collapse; re-centring on the points labelled as markers recovers part of them and changes
@@ -182,9 +203,10 @@ def test_cli_label_and_solve_generated_c3d(tmp_path):
     found = back.points[:, : len(layout)]
     ok = np.isfinite(found).all(-1) & (np.abs(found - lab).max(-1) < 1e-4)
     assert ok.mean() > 0.95, f"{ok.mean():.3f} of the markers labelled correctly"
-    main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "fast.npz"), "--retry", "0"])
-    fast = read_markers(tmp_path / "fast.npz").points[:, : len(layout)]
-    assert (np.isfinite(fast).all(-1) & (np.abs(fast - lab).max(-1) < 1e-4)).mean() > 0.95
+    for flag in (["--retry", "0"], ["--bf16"]):
+        main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "fast.npz"), *flag])
+        fast = read_markers(tmp_path / "fast.npz").points[:, : len(layout)]
+        assert (np.isfinite(fast).all(-1) & (np.abs(fast - lab).max(-1) < 1e-4)).mean() > 0.95, flag
     with pytest.raises(SystemExit, match="--retry: expected 0, or a confidence"):
         main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "x.npz"), "--retry", "2"])
 

@@ -222,13 +222,15 @@ def _assets_info() -> None:
     )
 
 
-def run_mocap_label(src: Path, out: Path, model: str, up: str, tracklets: bool, retry: float | None = None) -> None:
+def run_mocap_label(
+    src: Path, out: Path, model: str, up: str, tracklets: bool, retry: float | None = None, bf16: bool = False
+) -> None:
     from .mocap.c3d import read_markers, write_c3d, write_npz
     from .mocap.labeler import check_retry
     from .mocap.pipeline import label_sequence, load_labeler
 
     seq = read_markers(src)
-    labeler = load_labeler(model)
+    labeler = load_labeler(model).set_autocast(torch.bfloat16 if bf16 else None)
     if retry is not None:
         try:
             check_retry(retry, labeler.orienter is not None)
@@ -318,6 +320,10 @@ def main(argv: list[str] | None = None) -> int:
         help="two-stage labelers: orient again the frames labelled less surely than CONF (default: the model's, "
         "0.9 for the shipped ones; 0: never, about twice as fast)",
     )  # fmt: skip
+    lab.add_argument(
+        "--bf16", action="store_true",
+        help="run the networks in bfloat16 (about a third faster on CPUs with AMX; labels move a little)",
+    )  # fmt: skip
     sol = msub.add_parser("solve", help="labelled markers (.c3d/.npz) -> unibody motion (.npz)")
     sol.add_argument("markers", type=Path)
     sol.add_argument("--out", type=Path, required=True)
@@ -342,7 +348,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "pose":
             run_pose(args.motion, args.out, args.procedural)
         elif args.command == "mocap" and args.mocap_command == "label":
-            run_mocap_label(args.markers, args.out, args.model, args.up, not args.per_frame, args.retry)
+            run_mocap_label(args.markers, args.out, args.model, args.up, not args.per_frame, args.retry, args.bf16)
         elif args.command == "mocap" and args.mocap_command == "solve":
             run_mocap_solve(args.markers, args.out, args.layout, args.up, args.png)
         elif args.command == "mocap" and args.mocap_command == "layout":

@@ -168,6 +168,7 @@ class Labeler(nn.Module):
         if len(names) != num_labels:
             raise ValueError(f"label_names: expected {num_labels} names, got {len(names)}")
         self.label_names = names
+        self.autocast: torch.dtype | None = None  # set_autocast
         self.config = {"num_labels": num_labels, "width": width, "layers": layers, "heads": heads,
                        "sinkhorn_iters": sinkhorn_iters, "centre": centre, "refine": refine,
                        "retry": float(retry)}  # fmt: skip
@@ -224,13 +225,29 @@ class Labeler(nn.Module):
         ``centre`` (B, 3) overrides the frames' centres (default :meth:`centres`).
         """
         centre = self.centres(points, mask) if centre is None else centre
-        x = self.embed(torch.where(mask[..., None], points - centre[:, None], 0.0))
-        # A frame without real points attends to its (ignored) padding rather than to nothing (NaN).
-        key_ok = mask | ~mask.any(dim=1, keepdim=True)
-        key_bias = torch.where(key_ok, 0.0, _NEG_BIAS).to(x.dtype)[:, None, None, :]
-        for block in self.blocks:
-            x = block(x, key_bias)
-        return self.head(x)
+        with torch.autocast(points.device.type, dtype=self.autocast or torch.bfloat16, enabled=bool(self.autocast)):
+            x = self.embed(torch.where(mask[..., None], points - centre[:, None], 0.0))
+            # A frame without real points attends to its (ignored) padding rather than to nothing (NaN).
+            key_ok = mask | ~mask.any(dim=1, keepdim=True)
+            key_bias = torch.where(key_ok, 0.0, _NEG_BIAS).to(x.dtype)[:, None, None, :]
+            for block in self.blocks:
+                x = block(x, key_bias)
+            return self.head(x).to(points.dtype)
+
+    def set_autocast(self, dtype: torch.dtype | None) -> Labeler:
+        """Run the network (and the orienter's) in mixed precision, or not (``None``, the default).
+
+        With ``torch.bfloat16`` the products run in bfloat16 under :func:`torch.autocast`; centring,
+        Sinkhorn, decoding and orientation stay in the points' dtype. On CPUs with AMX (Intel Xeon
+        4th generation and later) the labeler then runs about a third faster; the labels move a
+        little (benchmarks/README.md). Not saved with the weights. Returns the labeler.
+        """
+        if dtype not in (None, torch.bfloat16, torch.float16):
+            raise ValueError(f"dtype: expected None, torch.bfloat16 or torch.float16, got {dtype!r}")
+        for m in (self, self.orienter):
+            if m is not None:
+                m.autocast = dtype
+        return self
 
     def forward(
         self, points: torch.Tensor, mask: torch.Tensor, *, refine: int | None = None, retry: float | None = None
