@@ -250,9 +250,11 @@ def test_training_script_slide_sets_one_segment_range():
     mod = _script()
     base = dict(subsets=[], neck_roll=None, extras=0, extra_distance=(0.03, float("inf")), stick_prob=0.9,
                 extra_prob=0.3, extra_clusters=0.0, cluster_size=3, cluster_radius=0.08, stature_prob=0.75,
-                head_bands=False, fitted=None)  # fmt: skip
+                head_bands=False, fitted=None, fold=None)  # fmt: skip
     layout = MarkerLayout.load("cmu41")
     syn = mod.synthetic(argparse.Namespace(**base, slide=[["FIN", "0.1", "1.0"]]), layout, 0, 4)
+    assert "fold" not in syn.config.pose  # --fold FRACTION: sample_poses(fold=FRACTION)
+    assert mod.synthetic(argparse.Namespace(**{**base, "fold": 0.2}, slide=[]), layout, 0, 4).config.pose["fold"] == 0.2
     default = SyntheticConfig.segments
     assert [r for r in syn.config.segments if r[0] == "FIN"] == [("FIN", "Hand", "HandMiddle2", 0.1, 1.0)]
     assert [r for r in syn.config.segments if r[0] != "FIN"] == [r for r in default if r[0] != "FIN"]
