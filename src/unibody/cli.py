@@ -322,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     lab.add_argument(
         "--bf16", action="store_true",
-        help="run the networks in bfloat16 (10-30 %% faster on CPUs with AMX; labels move a little)",
+        help="run the networks in bfloat16 (9-17 %% faster on CPUs with AMX; labels move a little)",
     )  # fmt: skip
     sol = msub.add_parser("solve", help="labelled markers (.c3d/.npz) -> unibody motion (.npz)")
     sol.add_argument("markers", type=Path)

@@ -239,8 +239,9 @@ class Labeler(nn.Module):
 
         With ``torch.bfloat16`` the products run in bfloat16 under :func:`torch.autocast`; centring,
         Sinkhorn, decoding and orientation stay in the points' dtype. On CPUs with AMX (Intel Xeon
-        4th generation and later) batches of hundreds of frames label 10-30 % faster (batch 1
-        slower); the labels move a little (benchmarks/README.md). Not saved with the weights. Returns the labeler.
+        4th generation and later) batches of hundreds of frames label 9-17 % faster (batch 1
+        slower); the labels move a little (benchmarks/README.md). Not saved with the weights.
+        Returns the labeler.
         """
         if dtype not in (None, torch.bfloat16, torch.float16):
             raise ValueError(f"dtype: expected None, torch.bfloat16 or torch.float16, got {dtype!r}")
