@@ -1,6 +1,6 @@
 """Mocap labeling and body solve on real, labelled C3D files (paper 003 protocol; evaluation only).
 
-    OMP_NUM_THREADS=2 python benchmarks/mocap.py [--evaldata ../shared/evaldata] [--sections label speed solve]
+    OMP_NUM_THREADS=2 python benchmarks/mocap.py [--evaldata ../shared/evaldata] [--sections label body speed solve]
         [--session pycgm=build/s2_pycgm/labeler.pt tennis=build/s2_tennis/labeler.pt] [--retry R] [--bf16]
 
 Labels are hidden from the labeler and used only to score it. Files: CMU 85_02, 85_12, 135_02
@@ -21,6 +21,11 @@ points in a file are real ghosts (truth: null).
   its extra labels count as null, so its rows score the same labels as the model's, and one
   pooled row takes every session's files from its own labeler.
 - Scores: accuracy over all real points and macro F1 over the labels present incl. null.
+- **body** (``unibody.mocap.relabel``): the per-frame C+G labels and the tracklet labels of
+  the rows above (the same draws), checked against a body solved from them: each point takes
+  the solved marker it sits on, where that is clear. It uses the whole sequence (the solve's
+  shape and temporal prior), so it is a sequence labelling, not a per-frame one. Frames/s:
+  the two checks of a file (four solves each: two passes, each solved again without the far labels).
 - **speed**: labeling frames/s at batch 1 and 256 (forward + decoding) on 256 real frames
   spread over each model's files, corrupted as per-frame C+G, with the two-stage labelers'
   retry confidence (their cost depends on the frames) and without retries; best and median
@@ -46,6 +51,7 @@ from unibody.mocap.labeler import Labeler, label_frames, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.metrics import labeling_scores
 from unibody.mocap.pipeline import load_labeler, render_solution, solve_sequence
+from unibody.mocap.relabel import relabel
 from unibody.mocap.solve import lab_to_unibody
 from unibody.mocap.tracklets import label_tracklets
 
@@ -90,15 +96,19 @@ def with_real_ghosts(batch: MocapBatch, ghosts: torch.Tensor, null: int) -> Moca
     return MocapBatch(pts, torch.cat([batch.mask, ok], dim=1), labels, batch.available)
 
 
-def per_frame(model: Labeler, marked, real_ghosts, gen, frames: list | None = None, **corruption):
-    """Predicted and true labels of every real point; ``frames`` (a list) receives each point's frame."""
-    null = model.num_labels
+def corrupted(marked, real_ghosts, gen, null: int, **corruption):
+    """(start frame, MocapBatch) of a file's frames corrupted per frame, 512 frames at a time."""
     m = torch.as_tensor(marked, dtype=torch.float32)
     g = torch.as_tensor(real_ghosts, dtype=torch.float32)
+    for s in range(0, len(m), 512):
+        yield s, with_real_ghosts(corrupt_frames(m[s : s + 512], gen, **corruption), g[s : s + 512], null)
+
+
+def per_frame(model: Labeler, marked, real_ghosts, gen, frames: list | None = None, **corruption):
+    """Predicted and true labels of every real point; ``frames`` (a list) receives each point's frame."""
     preds, truths = [], []
     with torch.no_grad():
-        for s in range(0, len(m), 512):
-            b = with_real_ghosts(corrupt_frames(m[s : s + 512], gen, **corruption), g[s : s + 512], null)
+        for s, b in corrupted(marked, real_ghosts, gen, model.num_labels, **corruption):
             pred, _ = predict(model(b.points, b.mask), b.mask)
             preds.append(pred[b.mask])
             truths.append(b.labels[b.mask])
@@ -125,9 +135,8 @@ def posture_bin(cos: np.ndarray) -> np.ndarray:
     return out
 
 
-def tracklet(model: Labeler, marked, ghosts, gen: torch.Generator, rng) -> dict[str, tuple]:
-    """Columns kept: occlusions / ghosts per frame, 50 broken trajectories, majority vote per column."""
-    null = model.num_labels
+def broken_sequence(marked, ghosts, rng, null: int) -> tuple[np.ndarray, np.ndarray]:
+    """Columns kept: occlusions / ghosts per frame, 50 broken trajectories; (T, N, 3) points, (N,) true labels."""
     t, nl, _ = marked.shape
     seq = np.concatenate([marked, ghosts, np.full((t, 3, 3), np.nan)], axis=1)
     truth_col = np.concatenate([np.arange(nl), np.full(seq.shape[1] - nl, null)])
@@ -142,7 +151,13 @@ def tracklet(model: Labeler, marked, ghosts, gen: torch.Generator, rng) -> dict[
         for j in range(int(rng.integers(0, 4))):
             seq[f, -3 + j] = np.median(visible, 0) + visible.std(0) * rng.standard_normal(3)
     broken, source = break_trajectories(seq, 50, rng)
-    truth = truth_col[source]
+    return broken, truth_col[source]
+
+
+def tracklet(model: Labeler, marked, ghosts, gen: torch.Generator, rng) -> dict[str, tuple]:
+    """Broken sequence (:func:`broken_sequence`), per-frame labels, then the majority vote per column."""
+    null = model.num_labels
+    broken, truth = broken_sequence(marked, ghosts, rng, null)
     vis = np.isfinite(broken).all(-1)
     frame = label_frames(model, torch.as_tensor(broken, dtype=torch.float32))
     vis = torch.from_numpy(vis)
@@ -264,6 +279,50 @@ def label_section(root: Path, models: dict[str, Labeler], seed: int, sessions: d
         print(f"| {name} | " + " | ".join(cells) + " |")
 
 
+def body_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
+    """The label section's per-frame C+G and tracklet labels (the same draws), then checked by a body solve."""
+    print("\n## Body-checked labels (unibody.mocap.relabel: a body solved from the labels, points re-assigned)")
+    print(
+        "| file | model | frames | per-frame C+G | + body | tracklet | tracklet + body | body check, frames/s |\n"
+        "|---|---|---|---|---|---|---|---|"
+    )
+    for name, files in FILES.items():
+        model, layout, null = models[name], MarkerLayout.load(name), models[name].num_labels
+        pooled = []
+        for rel in files:
+            seq = read(root / rel)
+            marked, ghosts = split(seq, model.label_names)
+            gen = torch.Generator().manual_seed(seed)
+            for _ in corrupted(marked, ghosts, gen, null, occlusions=(0, 0), ghosts=(0, 0)):
+                pass  # the label section's no-noise draw comes first
+            batches = [b for _, b in corrupted(marked, ghosts, gen, null)]
+            mask = torch.cat([b.mask for b in batches])
+            truth = torch.cat([b.labels for b in batches])
+            pts = torch.where(mask[..., None], torch.cat([b.points for b in batches]).double(), np.nan)
+            with torch.no_grad():
+                pred = torch.cat([predict(model(b.points, b.mask), b.mask)[0] for b in batches])
+            broken, col_truth = broken_sequence(marked, ghosts, np.random.default_rng(seed), null)
+            broken_t = torch.as_tensor(broken)
+            vis = torch.isfinite(broken_t).all(-1)
+            track = label_tracklets(label_frames(model, broken_t.float()), vis, null)
+            t = time.perf_counter()
+            checked, _ = relabel(pts, pred, layout, fps=seq.rate)
+            track_checked, _ = relabel(broken_t, track, layout, fps=seq.rate)
+            rate = 2 * len(marked) / (time.perf_counter() - t)
+            col_truth = torch.from_numpy(col_truth).expand(vis.shape)
+            rows = {
+                "frame": (pred[mask], truth[mask]),
+                "body": (checked[mask], truth[mask]),
+                "tracklet": (track[vis], col_truth[vis]),
+                "tracklet_body": (track_checked[vis], col_truth[vis]),
+            }
+            pooled.append(rows)
+            cells = " | ".join(fmt(labeling_scores(*v, null=null)) for v in rows.values())
+            print(f"| {Path(rel).stem} | {name} | {len(marked)} | {cells} | {rate:.0f} |", flush=True)
+        cells = " | ".join(fmt(v) for v in pool(pooled, null).values())
+        print(f"| **all {name} files** | {name} | | {cells} | |", flush=True)
+
+
 def _gemm_rate(rounds: int) -> str:
     """float32 GFLOP/s of the labeler's widest product (a 256-frame pass's q/k/v projection), best / median."""
     x, w, bias = torch.randn(256 * 44, 96), torch.randn(96, 288), torch.randn(288)
@@ -336,7 +395,7 @@ def solve_section(root: Path, png: Path | None) -> None:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--evaldata", type=Path, default=Path(__file__).resolve().parents[2] / "shared/evaldata")
-    p.add_argument("--sections", nargs="+", default=["label", "speed", "solve"])
+    p.add_argument("--sections", nargs="+", default=["label", "body", "speed", "solve"])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="first file per model, first 300 frames (a smoke test)")
     p.add_argument("--png", type=Path, default=Path("benchmarks/mocap_solve.png"))
@@ -364,6 +423,8 @@ def main() -> None:
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads{bf16}")
     if "label" in args.sections:
         label_section(args.evaldata, models, args.seed, sessions)
+    if "body" in args.sections:
+        body_section(args.evaldata, models, args.seed)
     if "speed" in args.sections:
         speed_section(args.evaldata, models, args.seed)
     if "solve" in args.sections:

@@ -207,6 +207,13 @@ def test_cli_label_and_solve_generated_c3d(tmp_path):
         main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "fast.npz"), *flag])
         fast = read_markers(tmp_path / "fast.npz").points[:, : len(layout)]
         assert (np.isfinite(fast).all(-1) & (np.abs(fast - lab).max(-1) < 1e-4)).mean() > 0.95, flag
+    # checked against a body solved from the labels: no worse, and nearly all right
+    main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "body.npz"), "--per-frame", "--body"])
+    body = read_markers(tmp_path / "body.npz").points[:, : len(layout)]
+    ok_body = np.isfinite(body).all(-1) & (np.abs(body - lab).max(-1) < 1e-4)
+    assert ok_body.mean() >= max(ok.mean(), 0.99), f"{ok_body.mean():.3f} against {ok.mean():.3f}"
+    with pytest.raises(SystemExit, match="--body: the layout 'pig39' must name the model's 41 labels"):
+        main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "x.npz"), "--body", "pig39"])
     with pytest.raises(SystemExit, match="--retry: expected 0, or a confidence"):
         main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "x.npz"), "--retry", "2"])
 

@@ -138,6 +138,7 @@ def test_residual_is_the_replayed_latent_markers(layer, clean):
     model = (blend[..., :3, :3] @ res.latent.double()[:, :, None]).squeeze(-1) + blend[..., :3, 3]
     dist = (model - points.double()).norm(dim=-1)
     torch.testing.assert_close(dist, res.residual.double(), atol=2e-5, rtol=0)
+    torch.testing.assert_close(res.markers.double(), model, atol=2e-5, rtol=0)
 
 
 def test_to_motion_replays(tmp_path, layout, clean):

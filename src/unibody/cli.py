@@ -223,14 +223,27 @@ def _assets_info() -> None:
 
 
 def run_mocap_label(
-    src: Path, out: Path, model: str, up: str, tracklets: bool, retry: float | None = None, bf16: bool = False
+    src: Path,
+    out: Path,
+    model: str,
+    up: str,
+    tracklets: bool,
+    retry: float | None = None,
+    bf16: bool = False,
+    body: str | None = None,
 ) -> None:
     from .mocap.c3d import read_markers, write_c3d, write_npz
     from .mocap.labeler import check_retry
+    from .mocap.layout import MarkerLayout, available_layouts
     from .mocap.pipeline import label_sequence, load_labeler
 
     seq = read_markers(src)
     labeler = load_labeler(model).set_autocast(torch.bfloat16 if bf16 else None)
+    layout = None
+    if body is not None:
+        if not body and model not in available_layouts():
+            raise SystemExit(f"--body: {model!r} is not a shipped layout; name the model's layout (--body FILE.json)")
+        layout = MarkerLayout.load(body or model)
     if retry is not None:
         try:
             check_retry(retry, labeler.orienter is not None)
@@ -238,7 +251,12 @@ def run_mocap_label(
             raise SystemExit(f"--{err}") from None
         labeler.config["retry"] = retry
     t = time.perf_counter()
-    labelled = label_sequence(seq, labeler, up=up, tracklets=tracklets)
+    try:
+        labelled = label_sequence(
+            seq, labeler, up=up, tracklets=tracklets, body=layout, progress=lambda line: print("  " + line, flush=True)
+        )
+    except ValueError as err:
+        raise SystemExit(f"--{err}") from None
     dt = time.perf_counter() - t
     (write_c3d if out.suffix.lower() == ".c3d" else write_npz)(out, labelled)
     found = int(labelled.visible[:, : labeler.num_labels].sum())
@@ -324,6 +342,11 @@ def main(argv: list[str] | None = None) -> int:
         "--bf16", action="store_true",
         help="run the networks in bfloat16 (9-17 %% faster on CPUs with AMX; labels move a little)",
     )  # fmt: skip
+    lab.add_argument(
+        "--body", nargs="?", const="", metavar="LAYOUT",
+        help="then check the labels against a body solved from them: each point takes the solved marker it sits "
+        "on, where that is clear (layout of the model's markers: the model's name by default, or a JSON file)",
+    )  # fmt: skip
     sol = msub.add_parser("solve", help="labelled markers (.c3d/.npz) -> unibody motion (.npz)")
     sol.add_argument("markers", type=Path)
     sol.add_argument("--out", type=Path, required=True)
@@ -348,7 +371,9 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "pose":
             run_pose(args.motion, args.out, args.procedural)
         elif args.command == "mocap" and args.mocap_command == "label":
-            run_mocap_label(args.markers, args.out, args.model, args.up, not args.per_frame, args.retry, args.bf16)
+            run_mocap_label(
+                args.markers, args.out, args.model, args.up, not args.per_frame, args.retry, args.bf16, args.body
+            )
         elif args.command == "mocap" and args.mocap_command == "solve":
             run_mocap_solve(args.markers, args.out, args.layout, args.up, args.png)
         elif args.command == "mocap" and args.mocap_command == "layout":

@@ -3,13 +3,16 @@
     seq = read_markers("session.c3d")                       # any labels, or none ('*12')
     model = load_labeler("cmu41")                           # shipped weights, or a path
     labelled = label_sequence(seq, model)                   # MarkerSequence with the model's labels
+    checked = label_sequence(seq, model, body=MarkerLayout.load("cmu41"))  # checked by a body solve
     result = solve_sequence(labelled, MarkerLayout.load("cmu41"))
     session = frame_layout(seq, MarkerLayout.load("pig39"), frame=0, name="session")  # + its extra markers
 
 Labelled output: one column per model label (NaN where the label is absent in a frame),
 then the points left unlabelled as ``*0``, ``*1``, ... columns (one per input column that
 kept any). With ``tracklets`` each input column (a hardware tracklet) takes the majority
-label of its frames (paper 003 §4.5), else every frame is labelled on its own.
+label of its frames (paper 003 §4.5), else every frame is labelled on its own. With ``body``
+the labels are then checked against a body solved from them (:func:`~unibody.mocap.relabel.relabel`):
+each point takes the solved marker it sits on, where that is clear.
 
 A session whose markers go beyond a shipped layout (tracking clusters, foot sets) gets its own
 layout from one labelled frame (:func:`frame_layout`, paper §4.5: one labelled frame per layout
@@ -29,6 +32,7 @@ import torch
 from .c3d import MarkerSequence
 from .labeler import Labeler, label_frames
 from .layout import MarkerLayout
+from .relabel import RelabelConfig, relabel
 from .solve import SolveConfig, SolveResult, derive_layout, lab_to_unibody, solve_markers
 from .tracklets import label_tracklets
 
@@ -58,7 +62,15 @@ def load_labeler(name_or_path: str | Path) -> Labeler:
 
 
 def label_sequence(
-    seq: MarkerSequence, model: Labeler, *, up: str = "z", tracklets: bool = True, batch: int = 256
+    seq: MarkerSequence,
+    model: Labeler,
+    *,
+    up: str = "z",
+    tracklets: bool = True,
+    batch: int = 256,
+    body: MarkerLayout | None = None,
+    body_config: RelabelConfig | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> MarkerSequence:
     """Label every point of a marker sequence (labels already in the file are ignored).
 
@@ -68,13 +80,24 @@ def label_sequence(
         up: "z" or "y", the vertical axis of ``seq``.
         tracklets: whether each input column takes its majority label.
         batch: frames per forward pass.
+        body: the layout of the model's markers (the same labels, in order): check the labels
+            against a body solved from them (:func:`~unibody.mocap.relabel.relabel`).
+        body_config: that check's thresholds.
+        progress: called with one-line reports of the check.
     """
+    if body is not None and body.labels != model.label_names:
+        raise ValueError(
+            f"body: the layout {body.name!r} must name the model's {model.num_labels} labels in order "
+            f"({', '.join(model.label_names[:4])}, ...), got {len(body)} ({', '.join(body.labels[:4])}, ...)"
+        )
     pts = torch.as_tensor(lab_to_unibody(seq.points, up=up), dtype=torch.float32)
     frame = label_frames(model, pts, batch=batch)  # (T, N), L = null
     null = model.num_labels
     visible = seq.visible
     if tracklets:
         frame = label_tracklets(frame, torch.from_numpy(visible), null)
+    if body is not None:
+        frame, _ = relabel(pts.double(), frame, body, fps=seq.rate, config=body_config, progress=progress)
     frame = frame.numpy()
     t, n = frame.shape
     out = np.full((t, null, 3), np.nan)

@@ -159,6 +159,7 @@ class SolveResult:
         anchors: (M,) int64, the canonical vertex each latent marker is skinned with.
         pose: (T, 77, 3) axis-angle, T-pose-relative local rotations of joints 1..77.
         transl: (T, 3) m, Hips world position, unibody frame (Y up).
+        markers: (T, M, 3) m, the model markers of every frame (unibody frame), missing or not.
         residual: (T, M) m, distance of each observed marker to its model marker after the
             fit; NaN where the marker is missing.
         solved: (T,) bool, False for frames interpolated for lack of visible markers.
@@ -170,6 +171,7 @@ class SolveResult:
     anchors: torch.Tensor
     pose: torch.Tensor
     transl: torch.Tensor
+    markers: torch.Tensor
     residual: torch.Tensor
     solved: torch.Tensor
     stage1_frames: torch.Tensor
@@ -327,7 +329,8 @@ def solve_markers(
         progress=progress,
     )
     local, transl, solved = stage2(body, s1.ident, s1.anchors, s1.latent[None], obs, vis, config, float(fps), progress)
-    residual = _residuals(body, s1, local, transl, obs)
+    markers = _model_markers(body, s1, local, transl)
+    residual = (markers - obs).norm(dim=-1)
     out = points.dtype
     return SolveResult(
         s1.ident.beta[0].to(out),
@@ -335,21 +338,22 @@ def solve_markers(
         s1.anchors.clone(),
         body.relative_pose(local).to(out),
         transl.to(out),
+        markers.to(out),
         residual.to(out),
         solved,
         picked,
     )
 
 
-def _residuals(
-    body: MarkerBody, s1: Stage1Result, local: torch.Tensor, transl: torch.Tensor, obs: torch.Tensor, chunk: int = 256
+def _model_markers(
+    body: MarkerBody, s1: Stage1Result, local: torch.Tensor, transl: torch.Tensor, chunk: int = 256
 ) -> torch.Tensor:
-    """(T, M) m, observed-to-model marker distances (NaN where missing), in chunks of frames."""
-    res = []
+    """(T, M, 3) m, the model markers of every frame, in chunks of frames."""
+    out = []
     for sl in torch.split(torch.arange(local.shape[0], device=local.device), chunk):
         x, *_ = body.markers(s1.ident, s1.anchors, s1.latent[None], local[sl], transl[sl], False)
-        res.append((x - obs[sl]).norm(dim=-1))
-    return torch.cat(res)
+        out.append(x)
+    return torch.cat(out)
 
 
 def derive_layout(

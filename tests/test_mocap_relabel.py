@@ -1,0 +1,76 @@
+"""Body-checked labels: matching costs by hand, and a known synthetic body's scrambled labels repaired."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from test_mocap_solve import FPS, K, _synthetic
+from unibody.body import BodyLayer
+from unibody.mocap.corrupt import corrupt_frames
+from unibody.mocap.layout import MarkerLayout
+from unibody.mocap.relabel import RelabelConfig, assign_points, relabel
+
+NAN = float("nan")
+
+
+def test_assign_points_costs():
+    """reach 0.1, keep 0.25, null 0.7: leave a label only for a marker 2.5 cm nearer; null beyond 9.5 cm."""
+    cfg = RelabelConfig(reach=0.1, keep=0.25, null_cost=0.7)
+    markers = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]]]).double()
+    pts = torch.tensor(
+        [[[0.03, 0, 0], [1.0, 0.13, 0], [2.0, 0.04, 0], [5.0, 0, 0], [NAN, NAN, NAN]]], dtype=torch.float64
+    )
+    # point 0 labelled 1 (1 m away): marker 0 is 3 cm away -> it takes 0 (0.3 < 1 - 0.25)
+    # point 1 labelled 1, 13 cm off: beyond (0.7 + 0.25) * reach -> null
+    # point 2 labelled null, 4 cm from marker 2: within (0.7 - 0.25) * reach -> marker 2
+    # point 3 labelled 2, 3 m from everything -> null; point 4 absent -> null
+    labels = torch.tensor([[1, 1, 3, 2, 0]])
+    assert assign_points(pts, markers, labels, cfg).tolist() == [[0, 3, 2, 3, 3]]
+    # the default null cost (0.99 > 1 - keep): a labelled point is made null only when another point
+    # takes its marker (point 3 loses marker 2 to point 2: 0.4 + 0.99 < 0.74 + 0.75); point 1 keeps 1
+    assert assign_points(pts, markers, labels, RelabelConfig(reach=0.1)).tolist() == [[0, 1, 2, 3, 3]]
+    # 2 cm nearer another marker is not enough to leave a label (point 0), 3 cm is (point 1)
+    pts2 = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0]]], dtype=torch.float64)
+    markers2 = torch.tensor([[[0.04, 0, 0], [1.04, 0, 0], [-0.02, 0, 0], [1.01, 0, 0]]], dtype=torch.float64)
+    assert assign_points(pts2, markers2, torch.tensor([[0, 1]]), cfg).tolist() == [[0, 3]]
+
+
+def test_assign_points_errors():
+    pts = torch.zeros(2, 3, 3)
+    with pytest.raises(ValueError, match="labels: visible points need labels in \\[0, 4\\]"):
+        assign_points(pts, torch.zeros(2, 4, 3), torch.full((2, 3), 5))
+    with pytest.raises(ValueError, match="markers"):
+        assign_points(pts, torch.full((2, 4, 3), NAN), torch.zeros(2, 3, dtype=torch.long))
+    with pytest.raises(ValueError, match="keep"):
+        RelabelConfig(keep=1.0)
+    with pytest.raises(ValueError, match="passes"):
+        RelabelConfig(passes=0)
+
+
+def test_relabel_repairs_scrambled_labels():
+    """Occlusions, ghosts, shuffled points, and 8 % of the labels wrong: the body solve puts them back."""
+    layer = BodyLayer.from_pca(num_components=K, dtype=torch.float64)
+    layout = MarkerLayout.load("cmu41")
+    points, _, _ = _synthetic(layer, layout, seed=3)
+    g = torch.Generator().manual_seed(3)
+    batch = corrupt_frames(points.float(), g)
+    pts = torch.where(batch.mask[..., None], batch.points.double(), NAN)
+    m = len(layout)
+    wrong = batch.labels.clone()
+    flip = batch.mask & (torch.rand(wrong.shape, generator=g) < 0.08)
+    wrong[flip] = torch.randint(0, m + 1, (int(flip.sum()),), generator=g)
+    wrong = torch.where(batch.mask, wrong, m)
+    before = float((wrong == batch.labels)[batch.mask].float().mean())
+    assert before < 0.95
+    lines: list[str] = []
+    fixed, result = relabel(pts, wrong, layout, fps=FPS, progress=lines.append)
+    assert len(lines) == 2 and lines[0].startswith("pass 1:")
+    acc = float((fixed == batch.labels)[batch.mask].float().mean())
+    assert acc >= 0.995, f"{100 * before:.1f} % -> {100 * acc:.1f} %"
+    assert result.markers.shape == (points.shape[0], m, 3)
+    # no marker twice in a frame, null for padding
+    assert bool((fixed[~batch.mask] == m).all())
+    for f in range(len(fixed)):
+        lab = fixed[f][fixed[f] < m]
+        assert len(lab.unique()) == len(lab)
