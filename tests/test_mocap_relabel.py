@@ -38,7 +38,7 @@ def test_assign_points_costs():
 
 def test_assign_points_errors():
     pts = torch.zeros(2, 3, 3)
-    with pytest.raises(ValueError, match="labels: visible points need labels in \\[0, 4\\]"):
+    with pytest.raises(ValueError, match="labels: visible entries need labels in \\[0, 4\\]"):
         assign_points(pts, torch.zeros(2, 4, 3), torch.full((2, 3), 5))
     with pytest.raises(ValueError, match="markers"):
         assign_points(pts, torch.full((2, 4, 3), NAN), torch.zeros(2, 3, dtype=torch.long))

@@ -32,7 +32,7 @@ import torch
 from .c3d import MarkerSequence
 from .labeler import Labeler, label_frames
 from .layout import MarkerLayout
-from .relabel import RelabelConfig, relabel
+from .relabel import RelabelConfig, labelled_markers, relabel
 from .solve import SolveConfig, SolveResult, derive_layout, lab_to_unibody, solve_markers
 from .tracklets import label_tracklets
 
@@ -90,20 +90,16 @@ def label_sequence(
             f"body: the layout {body.name!r} must name the model's {model.num_labels} labels in order "
             f"({', '.join(model.label_names[:4])}, ...), got {len(body)} ({', '.join(body.labels[:4])}, ...)"
         )
-    pts = torch.as_tensor(lab_to_unibody(seq.points, up=up), dtype=torch.float32)
-    frame = label_frames(model, pts, batch=batch)  # (T, N), L = null
+    pts = torch.as_tensor(lab_to_unibody(seq.points, up=up))  # float64
+    frame = label_frames(model, pts.float(), batch=batch)  # (T, N), L = null
     null = model.num_labels
     visible = seq.visible
     if tracklets:
         frame = label_tracklets(frame, torch.from_numpy(visible), null)
     if body is not None:
-        frame, _ = relabel(pts.double(), frame, body, fps=seq.rate, config=body_config, progress=progress)
-    frame = frame.numpy()
-    t, n = frame.shape
-    out = np.full((t, null, 3), np.nan)
-    rows, cols = np.nonzero(visible & (frame < null))
-    out[rows, frame[rows, cols]] = seq.points[rows, cols]
-    left = visible & (frame == null)
+        frame, _ = relabel(pts, frame, body, fps=seq.rate, config=body_config, progress=progress)
+    out = labelled_markers(torch.from_numpy(seq.points), frame, null).numpy()
+    left = visible & (frame == null).numpy()
     keep = np.nonzero(left.any(axis=0))[0]
     rest = np.where(left[:, keep, None], seq.points[:, keep], np.nan)
     labels = (*model.label_names, *(f"*{i}" for i in range(len(keep))))

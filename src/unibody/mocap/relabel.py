@@ -37,8 +37,9 @@ from scipy.optimize import linear_sum_assignment
 from .._checks import check_shape
 from .layout import MarkerLayout
 from .solve import SolveConfig, SolveResult, solve_markers
+from .tracklets import check_frame_labels
 
-__all__ = ["RelabelConfig", "assign_points", "relabel"]
+__all__ = ["RelabelConfig", "assign_points", "labelled_markers", "relabel"]
 
 
 @dataclass(frozen=True)
@@ -75,12 +76,17 @@ class RelabelConfig:
             raise ValueError(f"null_cost: expected 0 < null_cost < 1, got {self.null_cost!r}")
 
 
-def _labelled(points: torch.Tensor, labels: torch.Tensor, m: int) -> torch.Tensor:
-    """(T, M, 3) float64 markers from labelled points (NaN where a label is absent)."""
-    out = torch.full((points.shape[0], m, 3), math.nan, dtype=torch.float64, device=points.device)
-    ok = torch.isfinite(points).all(-1) & (labels < m)
-    f, i = ok.nonzero(as_tuple=True)
-    out[f, labels[f, i]] = points[f, i].to(torch.float64)
+def labelled_markers(points: torch.Tensor, labels: torch.Tensor, m: int) -> torch.Tensor:
+    """(T, M, 3) marker columns from (T, N, 3) points and their (T, N) labels in [0, M] (M = null).
+
+    Marker m of frame t is the point labelled m there, NaN where no point is; null and absent
+    (NaN) points are left out. Same dtype as ``points``.
+    """
+    visible = torch.isfinite(points).all(-1)
+    check_frame_labels(labels, visible, m, "labels")
+    out = torch.full((points.shape[0], m, 3), math.nan, dtype=points.dtype, device=points.device)
+    f, i = (visible & (labels < m)).nonzero(as_tuple=True)
+    out[f, labels[f, i]] = points[f, i]
     return out
 
 
@@ -105,8 +111,7 @@ def assign_points(
     check_shape(labels, "T N", name="labels", sizes=sizes)
     m = markers.shape[1]
     visible = torch.isfinite(points).all(-1)
-    if bool(((labels < 0) | (labels > m))[visible].any()):
-        raise ValueError(f"labels: visible points need labels in [0, {m}] (the null label is {m})")
+    check_frame_labels(labels, visible, m, "labels")
     if not bool(torch.isfinite(markers).all()):
         raise ValueError("markers: expected finite model markers, got NaN/inf")
     dist = torch.cdist(torch.nan_to_num(points.double()), markers.double())
@@ -155,16 +160,13 @@ def relabel(
         assignment).
     """
     cfg = RelabelConfig() if config is None else config
-    sizes: dict[str, int] = {}
-    check_shape(points, "T N 3", name="points", sizes=sizes)
-    check_shape(labels, "T N", name="labels", sizes=sizes)
-    if labels.is_floating_point():
-        raise TypeError(f"labels: expected integer labels, got {labels.dtype}")
+    check_shape(points, "T N 3", name="points")
     m = len(layout)
+    check_frame_labels(labels, torch.isfinite(points).all(-1), m, "labels")
     say = progress or (lambda _: None)
     labels = labels.long()
     for k in range(cfg.passes):
-        marked = _labelled(points, labels, m)
+        marked = labelled_markers(points.double(), labels, m)
         result = solve_markers(marked, layout, config=solve, fps=fps)
         far = result.residual.to(marked) > cfg.drop
         if bool(far.any()):

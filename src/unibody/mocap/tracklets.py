@@ -33,16 +33,19 @@ class TrackletVotes:
     share: torch.Tensor
 
 
-def _check(frame_labels: torch.Tensor, visible: torch.Tensor, null: int) -> None:
+def check_frame_labels(
+    frame_labels: torch.Tensor, visible: torch.Tensor, null: int, name: str = "frame_labels"
+) -> None:
+    """(T, N) integer labels in [0, null] wherever the (T, N) bool ``visible`` holds a point."""
     sizes: dict[str, int] = {}
-    check_shape(frame_labels, "T N", name="frame_labels", sizes=sizes)
+    check_shape(frame_labels, "T N", name=name, sizes=sizes)
     check_shape(visible, "T N", name="visible", sizes=sizes)
     if visible.dtype != torch.bool:
         raise TypeError(f"visible: expected a bool tensor, got {visible.dtype}")
     if frame_labels.is_floating_point():
-        raise TypeError(f"frame_labels: expected integer labels, got {frame_labels.dtype}")
+        raise TypeError(f"{name}: expected integer labels, got {frame_labels.dtype}")
     if bool(((frame_labels < 0) | (frame_labels > null))[visible].any()):
-        raise ValueError(f"frame_labels: visible entries need labels in [0, {null}]")
+        raise ValueError(f"{name}: visible entries need labels in [0, {null}] (the null label is {null})")
 
 
 def tracklet_votes(frame_labels: torch.Tensor, visible: torch.Tensor, null: int) -> TrackletVotes:
@@ -58,7 +61,7 @@ def tracklet_votes(frame_labels: torch.Tensor, visible: torch.Tensor, null: int)
     Returns:
         :class:`TrackletVotes`.
     """
-    _check(frame_labels, visible, null)
+    check_frame_labels(frame_labels, visible, null)
     n = frame_labels.shape[1]
     lab = torch.where(visible, frame_labels.long(), null + 1)  # invisible -> an extra, discarded class
     col = torch.arange(n, device=lab.device).expand_as(lab)
