@@ -294,18 +294,37 @@ class MarkerBody:
 
 @dataclass
 class Weights:
-    """Per-frame residual weights (1 / std): data (B, M) (0 where missing), prior (B,), temporal (B, M)."""
+    """Per-frame residual weights (1 / std): data (B, M) (0 where missing), prior (B,), temporal (B, M).
+
+    ``robust`` (m) > 0 makes the data term Cauchy: a marker at distance d from its model marker
+    costs ``w^2 c^2 log(1 + d^2 / c^2)`` (about ``w^2 d^2`` below c, growing only
+    logarithmically beyond), so a mislabelled point does not drag the body; 0 keeps squares.
+    """
 
     data: torch.Tensor
     prior: torch.Tensor
     temporal: torch.Tensor | None = None
     target: torch.Tensor | None = None  # (B, M, 3) temporal targets
+    robust: float = 0.0
+
+
+def _row_weights(r: torch.Tensor, wt: Weights) -> tuple[torch.Tensor, torch.Tensor]:
+    """Data costs (B, M) of residuals r (B, M, 3) (0 where missing) and their Gauss-Newton row weights.
+
+    Squares: ``w^2 d^2`` and ``w^2``. Cauchy: ``w^2 c^2 log(1 + d^2 / c^2)`` and ``w^2 / (1 + d^2 / c^2)``
+    (IRLS: the cost's gradient is that weight times 2 r).
+    """
+    d2, w2 = r.square().sum(-1), wt.data.square()
+    if wt.robust <= 0:
+        return w2 * d2, w2
+    c2 = wt.robust**2
+    return w2 * c2 * torch.log1p(d2 / c2), w2 / (1 + d2 / c2)
 
 
 def frame_cost(body, x, local, obs, wt: Weights) -> torch.Tensor:
-    """(B,) weighted sum of squares: data + pose prior + temporal."""
-    r = torch.nan_to_num(x - obs) * wt.data[..., None]
-    cost = r.square().sum((1, 2))
+    """(B,) weighted cost: data (squares or Cauchy) + pose prior + temporal."""
+    data, _ = _row_weights(torch.nan_to_num(x - obs), wt)
+    cost = data.sum(1)
     rp, _ = body.prior(local, None)
     cost = cost + wt.prior.square() * rp.square().sum((1, 2))
     if wt.temporal is not None:
@@ -316,8 +335,9 @@ def frame_cost(body, x, local, obs, wt: Weights) -> torch.Tensor:
 def frame_system(body, x, jac, g_rot, local, obs, wt: Weights):
     """Per-frame normal equations ``(H (B, N, N), g (B, N), row weights^2 (B, M))``; g = J^T W r."""
     b, m = x.shape[:2]
-    w2 = wt.data.square()
-    r = torch.nan_to_num(x - obs) * w2[..., None]
+    r = torch.nan_to_num(x - obs)
+    _, w2 = _row_weights(r, wt)
+    r = r * w2[..., None]
     if wt.temporal is not None:
         t2 = wt.temporal.square()
         r = r + (x - wt.target) * t2[..., None]

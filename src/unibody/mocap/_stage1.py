@@ -87,7 +87,7 @@ class _Stage1:
     def total_cost(self, ident, anchors, delta, local, transl, w) -> tuple[torch.Tensor, torch.Tensor]:
         cost, p, _, _ = self.latent_cost(ident, anchors, delta, w)
         x, *_ = self.body.markers(ident, anchors, p, local, transl, False)
-        wt = Weights(self.w_data, local.new_full((local.shape[0],), w["pose"]))
+        wt = Weights(self.w_data, local.new_full((local.shape[0],), w["pose"]), robust=self.cfg.robust)
         return cost + frame_cost(self.body, x, local, self.obs, wt).sum(), x
 
     def linearize(self, beta, anchors, delta, local, transl, w: dict[str, float]):
@@ -110,7 +110,7 @@ class _Stage1:
         jb = ((x_fd.view(k, f_count, m, 3) - x[None]) / h).permute(1, 2, 3, 0)  # (F, M, 3, K)
         jd = _block_diag(blend).view(f_count, m, 3, 3 * m)  # d x_m / d delta_m = blended rotation
         jz = torch.cat([jb, jd], -1).reshape(f_count, 3 * m, -1)
-        wt = Weights(self.w_data, local.new_full((f_count,), w["pose"]))
+        wt = Weights(self.w_data, local.new_full((f_count,), w["pose"]), robust=self.cfg.robust)
         cost = lat_cost + frame_cost(body, x, local, self.obs, wt).sum()
         h_ff, g_f, w2 = frame_system(body, x, jac, g_rot, local, self.obs, wt)
         w2r = w2.repeat_interleave(3, 1)[..., None]
@@ -172,7 +172,7 @@ def stage1(
     p, _ = body.latent(ident, anchors, distance, delta)
     local, transl = body.root_init(ident, anchors, p, body.relaxed_local.expand(obs.shape[0], -1, -1, -1), obs, vis)
     w0 = st.weights(cfg.stage1_anneal[0])
-    wt = Weights(st.w_data, obs.new_full((obs.shape[0],), w0["pose"]))
+    wt = Weights(st.w_data, obs.new_full((obs.shape[0],), w0["pose"]), robust=cfg.robust)
     local, transl, *_ = lm_frames(body, ident, anchors, p, local, transl, obs, lambda x: wt, cfg.stage1_iters)
     lam = obs.new_full((1,), 1e-3)
     for level, a in enumerate(cfg.stage1_anneal):

@@ -10,7 +10,7 @@ from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ._marker_body import MarkerBody, Weights, frame_cost, lm_frames, lm_iteration
 
 
-def _temporal_fn(x_hist, frames, w_data, w_prior, w_acc: float) -> Callable:
+def _temporal_fn(x_hist, frames, w_data, w_prior, w_acc: float, robust: float) -> Callable:
     """Weights with block-Jacobi temporal targets for the frames of the window.
 
     A frame whose previous and next frames (in time) are both in ``x_hist`` or the window gets
@@ -31,7 +31,7 @@ def _temporal_fn(x_hist, frames, w_data, w_prior, w_acc: float) -> Callable:
         seq = torch.cat([x_hist, x])
         prev = torch.cat([seq[:1], seq[:-1]])
         nxt = torch.cat([seq[1:], seq[-1:]])
-        return Weights(w_data, w_prior, w, ((prev + nxt) / 2)[h:])
+        return Weights(w_data, w_prior, w, ((prev + nxt) / 2)[h:], robust)
 
     return fn
 
@@ -84,7 +84,7 @@ class _Stage2:
         b, sl = self.body, slice(f, f + 1)
         local, transl = b.root_init(self.ident, self.anchors, self.p, b.relaxed_local, self.obs[sl], self.vis[sl])
         for mult in (10.0, 3.0, 1.0):
-            w = Weights(self.w_data[sl], self.w_prior[sl] * mult)
+            w = Weights(self.w_data[sl], self.w_prior[sl] * mult, robust=self.cfg.robust)
             local, transl, *_ = lm_frames(
                 b, self.ident, self.anchors, self.p, local, transl, self.obs[sl], lambda x, w=w: w, self.cfg.window
             )
@@ -94,7 +94,7 @@ class _Stage2:
         """(B,) data + prior cost of B candidate states of frame f."""
         b, sl = local.shape[0], slice(f, f + 1)
         x, *_ = self.body.markers(self.ident, self.anchors, self.p, local, transl, jacobian=False)
-        w = Weights(self.w_data[sl].expand(b, -1), self.w_prior[sl].expand(b))
+        w = Weights(self.w_data[sl].expand(b, -1), self.w_prior[sl].expand(b), robust=self.cfg.robust)
         return torch.nan_to_num(frame_cost(self.body, x, local, self.obs[sl], w), torch.inf)
 
     def stuck(self, f: int, cost: float) -> bool:
@@ -123,7 +123,7 @@ class _Stage2:
             return local, transl
         fr = torch.tensor(win, device=local.device)
         n = fr.numel()
-        w = Weights(self.w_data[fr], self.w_prior[fr])
+        w = Weights(self.w_data[fr], self.w_prior[fr], robust=self.cfg.robust)
         cand_l, cand_t, *_ = lm_frames(
             self.body, self.ident, self.anchors, self.p, l1.expand(n, -1, -1, -1), t1.expand(n, -1),
             self.obs[fr], lambda x: w, self.cfg.window,
@@ -203,7 +203,7 @@ def stage2(body: MarkerBody, ident, anchors, p, obs, vis, cfg, fps: float, progr
             lam = torch.cat([lam, lam.new_full((1,), 1e-3)])
         fr = torch.tensor(win, device=obs.device)
         frames_t = torch.tensor(retired + win, device=obs.device)
-        fn = _temporal_fn(hist_x, frames_t, st.w_data[fr], st.w_prior[fr], st.w_acc)
+        fn = _temporal_fn(hist_x, frames_t, st.w_data[fr], st.w_prior[fr], st.w_acc, cfg.robust)
         local, transl, lam, x = lm_iteration(body, ident, anchors, p, local, transl, obs[fr], fn, lam)
         if len(win) == cfg.window or added == len(frames):
             f = win.pop(0)

@@ -5,10 +5,16 @@ mostly a marker given a neighbour's label (an occluded neighbour's, often) and g
 for markers; a body solved over the whole sequence knows where every marker of every frame
 should be, occluded or not, to a few millimetres. :func:`relabel` runs, ``passes`` times:
 
-1. **solve** (:func:`~unibody.mocap.solve.solve_markers`) from the current labels;
+1. **solve** (:func:`~unibody.mocap.solve.solve_markers`, whose Cauchy data term keeps a few
+   mislabelled points from dragging the body) from the current labels;
 2. **drop**: labels whose point lies more than ``drop`` from its model marker are removed
-   and the body solved again (a mislabelled point pulls the fit toward it);
-3. **assign**, frame by frame: a minimum-cost matching of the frame's points to the model
+   and the body solved again;
+3. **support**: a marker whose labelled points lie within ``drop`` of its model marker in fewer
+   than ``support`` of the frames is left out of step 4, and its labels stay the labeler's.
+   The labeler rarely finds it (a session that places it elsewhere: pyCGM's thigh and shank
+   markers), so the solve has only guessed where it sits, and nearby unlabelled points (a
+   session's extra markers) would take it;
+4. **assign**, frame by frame: a minimum-cost matching of the frame's points to the model
    markers, each point also free to be null. A point costs ``min(d, reach) / reach`` for a
    marker at distance d and ``null_cost`` for null; its current label is ``keep`` cheaper.
    So a point leaves its label only for a marker ``keep * reach`` nearer (1.25 cm), and a point
@@ -48,6 +54,10 @@ class RelabelConfig:
 
     Attributes:
         passes: solve-and-assign rounds; each solves from the previous round's labels.
+        support: a marker takes part in the matching only when, in at least this fraction of
+            the frames, a point labelled with it lies within ``drop`` of its model marker; the
+            others (a marker the labeler rarely finds, so the solve has only guessed where it
+            sits) keep the labeler's labels.
         drop: m, labels farther than this from their model marker are left out of the second solve.
         reach: m, distances are clipped here: beyond it a marker is no better than any other.
         keep: cost discount of a point's current label (null included).
@@ -55,6 +65,7 @@ class RelabelConfig:
     """
 
     passes: int = 2
+    support: float = 0.5
     drop: float = 0.03
     reach: float = 0.05
     keep: float = 0.25
@@ -70,6 +81,8 @@ class RelabelConfig:
         for name in ("drop", "reach"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name}: expected a distance > 0, got {getattr(self, name)!r}")
+        if not 0 <= self.support <= 1:
+            raise ValueError(f"support: expected 0 <= support <= 1, got {self.support!r}")
         if not 0 <= self.keep < 1:
             raise ValueError(f"keep: expected 0 <= keep < 1, got {self.keep!r}")
         if not 0 < self.null_cost < 1:
@@ -91,7 +104,11 @@ def labelled_markers(points: torch.Tensor, labels: torch.Tensor, m: int) -> torc
 
 
 def assign_points(
-    points: torch.Tensor, markers: torch.Tensor, labels: torch.Tensor, config: RelabelConfig | None = None
+    points: torch.Tensor,
+    markers: torch.Tensor,
+    labels: torch.Tensor,
+    config: RelabelConfig | None = None,
+    checked: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Each frame's points matched to model markers (or null), favouring their current labels.
 
@@ -100,6 +117,8 @@ def assign_points(
         markers: (T, M, 3) m, where each marker should be (e.g. :attr:`SolveResult.markers`).
         labels: (T, N) int current labels in [0, M], M = null.
         config: the costs (see the module); default :class:`RelabelConfig`.
+        checked: (M,) bool, the markers that take part (default all); a point labelled with
+            another marker keeps its label.
 
     Returns:
         (T, N) int64 labels in [0, M]; no marker twice in a frame; M for absent points.
@@ -114,21 +133,30 @@ def assign_points(
     check_frame_labels(labels, visible, m, "labels")
     if not bool(torch.isfinite(markers).all()):
         raise ValueError("markers: expected finite model markers, got NaN/inf")
-    dist = torch.cdist(torch.nan_to_num(points.double()), markers.double())
+    if checked is None:
+        checked = torch.ones(m, dtype=torch.bool)
+    elif checked.dtype != torch.bool or checked.shape != (m,):
+        raise ValueError(f"checked: expected a ({m},) bool tensor, got {tuple(checked.shape)} {checked.dtype}")
+    use = np.nonzero(checked.cpu().numpy())[0]  # the matching's marker columns
+    k = len(use)
+    dist = torch.cdist(torch.nan_to_num(points.double()), markers.double()[:, use])
     cost = (dist.clamp_max(cfg.reach) / cfg.reach).cpu().numpy()
     vis, lab = visible.cpu().numpy(), labels.cpu().numpy()
-    out = np.full(lab.shape, m, dtype=np.int64)
+    column = np.full(m + 1, -1)  # label -> its column (-1: a marker left out)
+    column[use] = np.arange(k)
+    column[m] = k
+    out = np.where(vis & (column[lab] < 0), lab, m).astype(np.int64)
     for f in range(len(lab)):
-        idx = np.nonzero(vis[f])[0]
+        idx = np.nonzero(vis[f] & (column[lab[f]] >= 0))[0]
         n = len(idx)
         if n == 0:
             continue
         c = np.concatenate([cost[f, idx], np.full((n, n), cfg.null_cost)], axis=1)  # markers | one null per point
-        mine = lab[f, idx]
-        c[np.arange(n), np.where(mine < m, mine, m + np.arange(n))] -= cfg.keep
+        mine = column[lab[f, idx]]
+        c[np.arange(n), np.where(mine < k, mine, k + np.arange(n))] -= cfg.keep
         rows, cols = linear_sum_assignment(c)
-        hit = cols < m
-        out[f, idx[rows[hit]]] = cols[hit]
+        hit = cols < k
+        out[f, idx[rows[hit]]] = use[cols[hit]]
     return torch.from_numpy(out).to(labels.device)
 
 
@@ -166,14 +194,18 @@ def relabel(
     say = progress or (lambda _: None)
     labels = labels.long()
     for k in range(cfg.passes):
-        marked = labelled_markers(points.double(), labels, m)
+        observed = labelled_markers(points.double(), labels, m)
+        marked = observed.clone()
         result = solve_markers(marked, layout, config=solve, fps=fps)
         far = result.residual.to(marked) > cfg.drop
         if bool(far.any()):
             marked[far] = math.nan
             result = solve_markers(marked, layout, config=solve, fps=fps)
-        new = assign_points(points, result.markers, labels, cfg)
+        near = (observed - result.markers.to(observed)).norm(dim=-1) <= cfg.drop
+        checked = near.double().mean(0) >= cfg.support
+        new = assign_points(points, result.markers, labels, cfg, checked.cpu())
         changed = int(((new != labels) & torch.isfinite(points).all(-1)).sum())
-        say(f"pass {k + 1}: dropped {int(far.sum())} far labels, changed {changed} labels")
+        left = "" if bool(checked.all()) else f", left {int((~checked).sum())} rarely found markers to the labeler"
+        say(f"pass {k + 1}: dropped {int(far.sum())} far labels, changed {changed} labels{left}")
         labels = new
     return labels, result

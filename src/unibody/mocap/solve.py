@@ -28,6 +28,15 @@ al. 2019) with batched torch Gauss-Newton instead of chumpy:
   weight grows with the missing fraction (MoSh++). Frames with too few visible markers are
   interpolated (slerp) and flagged unsolved.
 
+**Robust data term.** A marker at distance d from its model marker costs
+``c^2 log(1 + d^2 / c^2)`` in units of ``marker_std^2`` (Cauchy, ``c = robust``, 15 mm by
+default; least squares below c): a mislabelled point, a swapped pair or a ghost taken for a
+marker barely pulls the body, and stands out by its residual. Each LM step reweights the
+rows (IRLS). On a synthetic body with 8 % of its labels moved to other markers' points the
+body joints stay within 4 mm (least squares: 116 mm; ``tests/test_mocap_solve.py``); on the
+evaldata files' own labels the median residual falls and the mean rises a little
+(``benchmarks/README.md``).
+
 **Pose prior.** Per joint and axis, ``(theta - mu) / sigma`` on the T-pose-relative axis-angle
 theta: mu is the relaxed standing pose and sigma half the joint range of
 :data:`unibody.poses.JOINT_RANGES` (at least 0.05 rad); none on the Hips. It is a diagonal
@@ -37,14 +46,11 @@ segments with collinear markers, the split of a bend over Spine1/Spine2/Chest or
 Frames: the solver works in unibody's frame (metres, Y up). :func:`lab_to_unibody` converts
 Z-up lab coordinates ((x, y, z) -> (x, z, -y)).
 
-Measured (2 shared CPU cores, ``OMP_NUM_THREADS=1``, defaults; shipped layouts; evaldata
-C3D files): stage 1 takes ~2 s; stage 2 runs at ~110 frames/s on CMU 85_02 (810 frames at
-120 Hz: jumps, flips, breakdance; 1 or 2 threads alike) and ~135 frames/s on the first 2000
-frames of CMU 135_02 (2 threads). Mean / median marker residuals: CMU 85_02 6.5 / 4.6 mm,
-CMU 135_02 3.9 / 3.2 mm (``cmu41``: its wrist markers sit 9.5 mm off the skin, CMU's on ~15 cm
-wrist bars), pyCGM stair descent 2.0 / 1.5 mm and BTK gait 1.6 / 1.2 mm (``pig39`` / ``pig35``),
-tennis serve 5.6 / 4.2 mm. Synthetic known bodies (``tests/test_mocap_solve.py``): body joints
-within ~3 mm on average, marker residuals ~0.2 mm.
+Measured: ``benchmarks/README.md`` (``python benchmarks/mocap.py --sections solve``): 80-180
+frames/s on 2 CPU cores, stage 1 included, mean marker residuals 5-6 mm on the CMU files
+(``cmu41``: its wrist markers sit 9.5 mm off the skin, CMU's on ~15 cm wrist bars) and
+1-7 mm on the Plug-in Gait files. Synthetic known bodies (``tests/test_mocap_solve.py``):
+body joints within ~3 mm on average, marker residuals ~0.2 mm.
 """
 
 from __future__ import annotations
@@ -75,7 +81,7 @@ __all__ = [
 
 
 _INT_FIELDS = ("shape_components", "stage1_frames", "stage1_iters", "window", "recheck_every", "min_markers")
-_NONNEGATIVE_FIELDS = ("pose_prior_weight", "shape_prior_weight", "missing_prior_gain", "min_visible")
+_NONNEGATIVE_FIELDS = ("pose_prior_weight", "shape_prior_weight", "missing_prior_gain", "min_visible", "robust")
 
 
 @dataclass(frozen=True)
@@ -91,6 +97,9 @@ class SolveConfig:
         stage1_anneal: multipliers of the pose, shape and slide prior weights, one level each
             (MoSh: [1, .5, .25, .125] relative to the data).
         marker_std: m, std of a marker residual (model and placement error, not only noise).
+        robust: m, Cauchy scale of the marker residuals: a marker d from its model marker costs
+            ``c^2 log(1 + d^2 / c^2) / marker_std^2``, so a few mislabelled points barely pull
+            the body; 0 fits least squares.
         pose_prior_weight: weight of the pose prior (in sigmas of the joint range).
         shape_prior_weight: weight of the N(0, 1) prior on the PCA coefficients.
         slide_std: m, std of a latent marker's slide from its layout placement (stage 1).
@@ -115,6 +124,7 @@ class SolveConfig:
     stage1_iters: int = 5
     stage1_anneal: tuple[float, ...] = (8.0, 4.0, 2.0, 1.0)
     marker_std: float = 0.005
+    robust: float = 0.015
     pose_prior_weight: float = 0.1
     shape_prior_weight: float = 1.0
     slide_std: float = 0.02
