@@ -11,7 +11,7 @@ should be, occluded or not, to a few millimetres. :func:`relabel` runs, ``passes
    and the body solved again;
 3. **support**: a marker whose labelled points lie within ``drop`` of its model marker in fewer
    than ``support`` of the frames is left out of step 4, and its labels stay the labeler's.
-   The labeler rarely finds it (a session that places it elsewhere: pyCGM's thigh and shank
+   The labeler rarely finds it (a session that places it elsewhere: pyCGM's thigh, shank and toe
    markers), so the solve has only guessed where it sits, and nearby unlabelled points (a
    session's extra markers) would take it;
 4. **assign**, frame by frame: a minimum-cost matching of the frame's points to the model
