@@ -26,7 +26,9 @@ weights file's ``meta["recipe"]`` and in benchmarks/README.md:
 
 Two runs side by side with ``--threads 1`` each use a 2-core machine best (one-stage runs
 about 2 steps/s each; second stages, their frozen first stage included, about 0.8 (cmu41)
-and 0.55 (pig39)); one run alone goes about 1.7x faster with ``--threads 2``.
+and 0.55 (pig39)); one run alone goes about 1.7x faster with ``--threads 2``. ``--device cuda`` trains the
+networks on a GPU; the synthetic data is still drawn on the CPU by the same generator, so the
+batches are the same on any device (the weights are not bit-identical across devices).
 
 Data is drawn on the fly from :class:`unibody.mocap.synthetic.SyntheticMocap` (a pool of
 PCA bodies from ``--pool-seed``, seeded poses, jitter, noise, occlusions, ghosts). Validation
@@ -50,6 +52,7 @@ from pathlib import Path
 
 import torch
 
+from unibody._checks import check_device
 from unibody.mocap.corrupt import MocapBatch
 from unibody.mocap.labeler import Labeler, labeling_loss, predict
 from unibody.mocap.layout import MarkerLayout
@@ -173,6 +176,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--val-frames", type=int, default=2048)
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument(
+        "--device", default="cpu",
+        help="cpu, cuda or cuda:N: where the networks train (data is drawn on the CPU, the same on any device)",
+    )  # fmt: skip
     p.add_argument("--checkpoint-every", type=float, default=120.0, help="seconds")
     p.add_argument("--log-every", type=float, default=20.0, help="seconds")
     p.add_argument("--stop-at", type=int, help="checkpoint and stop after this step (resume later)")
@@ -184,6 +191,10 @@ def main(argv: list[str] | None = None) -> None:
         help="with --orient-with: frames labelled less surely than this are oriented again (not in training)",
     )  # fmt: skip
     args = p.parse_args(argv)
+    try:
+        device = check_device(args.device, "--device")
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
     torch.set_num_threads(args.threads)
     rev = git_rev()  # the code the run started from
     args.out.mkdir(parents=True, exist_ok=True)
@@ -193,7 +204,8 @@ def main(argv: list[str] | None = None) -> None:
     train_data = synthetic(args, layout, args.pool_seed, args.identities)
     val_data = synthetic(args, layout, args.pool_seed + 1000, 256)  # disjoint bodies
     val_gen = torch.Generator().manual_seed(10_000 + args.seed)
-    val = [val_data.sample(min(256, args.val_frames), val_gen) for _ in range(max(1, args.val_frames // 256))]
+    size, count = min(256, args.val_frames), max(1, args.val_frames // 256)
+    val = [val_data.sample(size, val_gen).to(device) for _ in range(count)]
 
     torch.manual_seed(args.seed)
     orient = {}
@@ -218,13 +230,14 @@ def main(argv: list[str] | None = None) -> None:
     )
     if args.init:
         if args.init.endswith("checkpoint.pt"):  # another run's training checkpoint
-            start, start_names = torch.load(args.init, weights_only=True)["model"], layout.labels
+            start, start_names = torch.load(args.init, weights_only=True, map_location="cpu")["model"], layout.labels
         else:
             start_model = load_labeler(args.init)
             start, start_names = start_model.state_dict(), start_model.label_names
         if not set(start_names) <= set(layout.labels):
             raise SystemExit(f"--init: {args.init} labels {start_names} are not all in {layout.name}")
         init_from(model, start, start_names, args.init)
+    model.to(device)
     trainable = [x for x in model.parameters() if x.requires_grad]
     opt = torch.optim.Adam(trainable, lr=args.lr, weight_decay=args.weight_decay)
 
@@ -237,7 +250,7 @@ def main(argv: list[str] | None = None) -> None:
     gen = torch.Generator().manual_seed(args.seed)
     step = 0
     if ckpt_path.exists():
-        state = torch.load(ckpt_path, weights_only=True)
+        state = torch.load(ckpt_path, weights_only=True, map_location="cpu")  # the generator stays on the CPU
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["opt"])
         gen.set_state(state["gen"])
@@ -259,7 +272,7 @@ def main(argv: list[str] | None = None) -> None:
     while step < end and not stop["now"]:
         for group in opt.param_groups:
             group["lr"] = lr_at(step)
-        batch = train_data.sample(args.batch, gen)
+        batch = train_data.sample(args.batch, gen).to(device)
         loss = labeling_loss(model(batch.points, batch.mask, refine=0, retry=0.0), batch)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite loss at step {step}")
@@ -318,6 +331,7 @@ def main(argv: list[str] | None = None) -> None:
         "val_frames": sum(len(b.points) for b in val),
         "git_rev": rev,
         "torch": str(torch.__version__),
+        "device": str(device),
     }
     model.save(args.out / "labeler.pt", meta)
     print(f"wrote {args.out / 'labeler.pt'}: synthetic val accuracy {acc:.4f} (markers {acc_m:.4f})", flush=True)

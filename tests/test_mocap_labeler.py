@@ -244,6 +244,29 @@ def test_training_script_resumes_bit_identically(tmp_path):
     assert not torch.equal(c.bin_score, a.bin_score)
 
 
+def test_training_script_device():
+    """``--device`` is checked before any work; the weights record the device they trained on."""
+    mod = _script()
+    with pytest.raises(SystemExit, match="--device: expected cpu, cuda or cuda:N, got 'gpu'"):
+        mod.main(_args("unused", 3, "--device", "gpu"))
+    if not torch.cuda.is_available():
+        with pytest.raises(SystemExit, match="--device: 'cuda' is not on this machine"):
+            mod.main(_args("unused", 3, "--device", "cuda"))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_training_script_on_cuda_resumes_and_loads_on_the_cpu(tmp_path):
+    """A run on the GPU stops, resumes from its checkpoint and writes weights that load on the CPU
+    and label the validation frames as well as a CPU run of the same command (same batches)."""
+    mod = _script()
+    mod.main(_args(tmp_path / "cpu"))
+    mod.main(_args(tmp_path / "gpu", 3, "--device", "cuda", "--stop-at", "7"))
+    mod.main(_args(tmp_path / "gpu", 3, "--device", "cuda"))
+    a, b = Labeler.load(tmp_path / "cpu" / "labeler.pt"), Labeler.load(tmp_path / "gpu" / "labeler.pt")
+    assert b.bin_score.device.type == "cpu" and b.meta["device"] == "cuda" and b.meta["steps"] == 12
+    assert abs(a.meta["synthetic_val_accuracy"] - b.meta["synthetic_val_accuracy"]) < 0.05
+
+
 def test_training_script_slide_sets_one_segment_range():
     """``--slide FIN 0.1 1.0`` changes that rule's range along its bone and no other rule; an unknown
     suffix or a range with LO > HI is refused."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -216,6 +218,9 @@ def test_cli_label_and_solve_generated_c3d(tmp_path):
         main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "x.npz"), "--body", "pig39"])
     with pytest.raises(SystemExit, match="--retry: expected 0, or a confidence"):
         main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "x.npz"), "--retry", "2"])
+    with pytest.raises(SystemExit, match="--device: expected cpu, cuda or cuda:N, got 'gpu'"):
+        main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "x.npz"), "--device", "gpu"])
+    assert not (tmp_path / "x.npz").exists()
 
 
 def test_label_sequence_per_frame_keeps_unlabelled_points():
@@ -230,6 +235,46 @@ def test_label_sequence_per_frame_keeps_unlabelled_points():
     n_in, n_out = int(seq.visible.sum()), int(out.visible.sum())
     assert n_in == n_out  # no point is lost or duplicated
     assert out.points.shape[1] >= len(layout)
+
+
+def _shuffled_sequence(layout: MarkerLayout, frames: int) -> tuple[MarkerSequence, np.ndarray]:
+    """The smooth sequence's markers with their labels hidden and columns shuffled, and the lab points."""
+    markers, _ = smooth_sequence(layout, frames=frames)
+    lab = unibody_to_lab(markers.numpy(), up="z")
+    perm = np.random.default_rng(1).permutation(len(layout))
+    raw = MarkerSequence(lab[:, perm], tuple(f"*{i}" for i in range(len(layout))), ("",) * len(layout), 60.0)
+    return raw, lab
+
+
+def _right(out: MarkerSequence, lab: np.ndarray) -> np.ndarray:
+    found = out.points[:, : lab.shape[1]]
+    return np.isfinite(found).all(-1) & (np.abs(found - lab).max(-1) < 1e-4)
+
+
+def test_label_sequence_labels_with_the_model_in_its_dtype():
+    """label_sequence gives the points to the model in the model's dtype: a float64 copy of the
+    labeler (it used to be refused) labels as the float32 one does."""
+    layout = MarkerLayout.load("cmu41")
+    model = load_labeler("cmu41")
+    raw, lab = _shuffled_sequence(layout, 12)
+    ref = _right(label_sequence(raw, model, tracklets=False), lab)
+    out = _right(label_sequence(raw, copy.deepcopy(model).double(), tracklets=False), lab)
+    assert ref.mean() > 0.95 and (out == ref).mean() > 0.99, (ref.mean(), (out == ref).mean())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_label_sequence_and_cli_on_cuda(tmp_path):
+    """On a GPU the labeler labels as on the CPU (the labels come back on the CPU), by the API and
+    by ``unibody mocap label --device cuda``."""
+    layout = MarkerLayout.load("cmu41")
+    model = load_labeler("cmu41")
+    raw, lab = _shuffled_sequence(layout, 12)
+    ref = _right(label_sequence(raw, model, tracklets=False), lab)
+    out = _right(label_sequence(raw, copy.deepcopy(model).cuda(), tracklets=False), lab)
+    assert ref.mean() > 0.95 and (out == ref).mean() > 0.99, (ref.mean(), (out == ref).mean())
+    write_c3d(tmp_path / "raw.c3d", raw)
+    main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "out.npz"), "--device", "cuda"])
+    assert _right(read_markers(tmp_path / "out.npz"), lab).mean() > 0.95
 
 
 def test_cli_layout_adds_the_sessions_other_markers(tmp_path):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["check_shape", "check_finite", "check_like", "check_tensor"]
+__all__ = ["check_device", "check_shape", "check_finite", "check_like", "check_tensor"]
 
 
 def _fmt(spec: str) -> str:
@@ -77,3 +77,18 @@ def check_like(x: torch.Tensor, ref: torch.Tensor, name: str, owner: str = "the 
             f"{str(ref.dtype).removeprefix('torch.')} on {ref.device}; "
             f"convert the input or call .to(...) on {owner}"
         )
+
+
+def check_device(name: str, arg: str = "device") -> torch.device:
+    """The torch device ``name`` ("cpu", "cuda", "cuda:1"); ValueError unless this machine has it."""
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"{arg}: expected cpu, cuda or cuda:N, got {name!r}") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"{arg}: expected cpu, cuda or cuda:N, got {name!r}")
+    if dev.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if (dev.index or 0) >= count:
+            raise ValueError(f"{arg}: {name!r} is not on this machine ({count} CUDA devices)")
+    return dev

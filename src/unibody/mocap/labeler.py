@@ -61,6 +61,7 @@ _NEG_BIAS = -1.0e9  # attention logit of padding keys: softmax weight exactly 0
 # Frames per pass. On a 2-core CPU (torch 2.13), 256 real frames labelled in passes of 64-128
 # frames ran 10-20 % faster than in one pass of 256, or as fast when the VM was slow; a 377-frame
 # pass was slower still (benchmarks/README.md). Frames are independent: the plans are the same.
+# A GPU takes the whole batch in one pass.
 _CHUNK = 96
 
 
@@ -290,7 +291,7 @@ class Labeler(nn.Module):
 
     def _label(self, points: torch.Tensor, mask: torch.Tensor, centre: torch.Tensor, refine: int) -> torch.Tensor:
         """Log plan of frames already centred on ``centre`` (and oriented), after ``refine`` re-centrings."""
-        if len(points) > _CHUNK:  # frames are independent: the same plans, in passes that stay fast
+        if len(points) > _CHUNK and points.device.type == "cpu":  # frames are independent: the same plans
             parts = (points.split(_CHUNK), mask.split(_CHUNK), centre.split(_CHUNK))
             return torch.cat([self._label(p, m, c, refine) for p, m, c in zip(*parts, strict=True)])
         iters, null = self.config["sinkhorn_iters"], self.num_labels

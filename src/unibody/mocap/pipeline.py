@@ -76,7 +76,7 @@ def label_sequence(
 
     Args:
         seq: the input, in its lab frame (``up`` names its vertical axis).
-        model: a trained labeler.
+        model: a trained labeler, on any device and in any dtype (the labels come back on the CPU).
         up: "z" or "y", the vertical axis of ``seq``.
         tracklets: whether each input column takes its majority label.
         batch: frames per forward pass.
@@ -91,7 +91,7 @@ def label_sequence(
             f"({', '.join(model.label_names[:4])}, ...), got {len(body)} ({', '.join(body.labels[:4])}, ...)"
         )
     pts = torch.as_tensor(lab_to_unibody(seq.points, up=up))  # float64
-    frame = label_frames(model, pts.float(), batch=batch)  # (T, N), L = null
+    frame = label_frames(model, pts.to(model.bin_score), batch=batch).cpu()  # (T, N), L = null; on the model's device
     null = model.num_labels
     visible = seq.visible
     if tracklets:
