@@ -251,27 +251,28 @@ def _right(out: MarkerSequence, lab: np.ndarray) -> np.ndarray:
     return np.isfinite(found).all(-1) & (np.abs(found - lab).max(-1) < 1e-4)
 
 
+def _labels_as_shipped(move) -> tuple[MarkerSequence, np.ndarray]:
+    """Label a shuffled cmu41 sequence with the shipped labeler and with ``move(copy of it)``:
+    the copy must label (nearly) every point as the original does. Returns the sequence and its truth."""
+    model = load_labeler("cmu41")
+    raw, lab = _shuffled_sequence(MarkerLayout.load("cmu41"), 12)
+    ref = _right(label_sequence(raw, model, tracklets=False), lab)
+    out = _right(label_sequence(raw, move(copy.deepcopy(model)), tracklets=False), lab)
+    assert ref.mean() > 0.95 and (out == ref).mean() > 0.99, (ref.mean(), (out == ref).mean())
+    return raw, lab
+
+
 def test_label_sequence_labels_with_the_model_in_its_dtype():
     """label_sequence gives the points to the model in the model's dtype: a float64 copy of the
     labeler (it used to be refused) labels as the float32 one does."""
-    layout = MarkerLayout.load("cmu41")
-    model = load_labeler("cmu41")
-    raw, lab = _shuffled_sequence(layout, 12)
-    ref = _right(label_sequence(raw, model, tracklets=False), lab)
-    out = _right(label_sequence(raw, copy.deepcopy(model).double(), tracklets=False), lab)
-    assert ref.mean() > 0.95 and (out == ref).mean() > 0.99, (ref.mean(), (out == ref).mean())
+    _labels_as_shipped(lambda m: m.double())
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_label_sequence_and_cli_on_cuda(tmp_path):
     """On a GPU the labeler labels as on the CPU (the labels come back on the CPU), by the API and
     by ``unibody mocap label --device cuda``."""
-    layout = MarkerLayout.load("cmu41")
-    model = load_labeler("cmu41")
-    raw, lab = _shuffled_sequence(layout, 12)
-    ref = _right(label_sequence(raw, model, tracklets=False), lab)
-    out = _right(label_sequence(raw, copy.deepcopy(model).cuda(), tracklets=False), lab)
-    assert ref.mean() > 0.95 and (out == ref).mean() > 0.99, (ref.mean(), (out == ref).mean())
+    raw, lab = _labels_as_shipped(lambda m: m.cuda())
     write_c3d(tmp_path / "raw.c3d", raw)
     main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(tmp_path / "out.npz"), "--device", "cuda"])
     assert _right(read_markers(tmp_path / "out.npz"), lab).mean() > 0.95
