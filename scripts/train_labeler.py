@@ -29,6 +29,9 @@ about 2 steps/s each; second stages, their frozen first stage included, about 0.
 and 0.55 (pig39)); one run alone goes about 1.7x faster with ``--threads 2``. ``--device cuda`` trains the
 networks on a GPU; the synthetic data is still drawn on the CPU by the same generator, so the
 batches are the same on any device (the weights are not bit-identical across devices).
+``--motions`` poses a fraction ``--motion-prob`` of the samples from the frames of unibody
+motion files (the paper trains on AMASS: its sequences, turned into canonical rotations by
+``unibody invert``, fit here), each turned to a random heading; the shipped weights used none.
 
 Data is drawn on the fly from :class:`unibody.mocap.synthetic.SyntheticMocap` (a pool of
 PCA bodies from ``--pool-seed``, seeded poses, jitter, noise, occlusions, ghosts). Validation
@@ -53,6 +56,7 @@ from pathlib import Path
 import torch
 
 from unibody._checks import check_device
+from unibody.io.motion import load_motion
 from unibody.mocap.corrupt import MocapBatch
 from unibody.mocap.labeler import Labeler, labeling_loss, predict
 from unibody.mocap.layout import MarkerLayout
@@ -63,7 +67,9 @@ from unibody.mocap.synthetic import POSE, SyntheticConfig, SyntheticMocap
 HEAD_BANDS = (("FHD", 10.0, 100.0), ("BHD", 110.0, 170.0))  # --head-bands: azimuths from the front, degrees
 
 
-def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, identities: int) -> SyntheticMocap:
+def synthetic(
+    args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, identities: int, motions: torch.Tensor | None = None
+) -> SyntheticMocap:
     subs = tuple(MarkerLayout.load(s).labels for s in args.subsets)
     ranges = dict(POSE["ranges"])
     if args.neck_roll is not None:  # sideways tilt (about Z) of each of Neck1, Neck2 and Head
@@ -89,9 +95,20 @@ def synthetic(args: argparse.Namespace, layout: MarkerLayout, pool_seed: int, id
         cluster_radius=args.cluster_radius,
         stature_prob=args.stature_prob, bands=HEAD_BANDS if args.head_bands else (),
         pose={**POSE, "ranges": ranges, **({} if args.fold is None else {"fold": args.fold})}, segments=segments,
+        motion_prob=args.motion_prob,
         **({} if args.fitted is None else {"fitted": True, "jitter_radius": args.fitted}),
     )  # fmt: skip
-    return SyntheticMocap(layout, cfg)
+    return SyntheticMocap(layout, cfg, motions=motions)
+
+
+def read_motions(paths: list[str]) -> torch.Tensor | None:
+    """The pose frames (F, 77, 3) of unibody motion files, stacked (None without files)."""
+    if not paths:
+        return None
+    try:
+        return torch.cat([torch.as_tensor(load_motion(x).pose, dtype=torch.float32) for x in paths])
+    except (OSError, ValueError, KeyError) as err:
+        raise SystemExit(f"--motions: {err}") from None
 
 
 def accuracy(model: Labeler, batches: list[MocapBatch]) -> tuple[float, float]:
@@ -172,6 +189,11 @@ def main(argv: list[str] | None = None) -> None:
         "--extra-distance", type=float, nargs=2, default=(0.03, float("inf")), metavar=("LO", "HI"),
         help="m, range of an extra marker's distance to the nearest layout vertex",
     )  # fmt: skip
+    p.add_argument(
+        "--motions", nargs="+", default=[], metavar="FILE",
+        help="unibody motion files (.npz, e.g. from `unibody invert`) whose frames pose --motion-prob of the samples",
+    )  # fmt: skip
+    p.add_argument("--motion-prob", type=float, default=0.5, help="fraction of samples posed from --motions")
     p.add_argument("--pool-seed", type=int, default=0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--val-frames", type=int, default=2048)
@@ -201,8 +223,11 @@ def main(argv: list[str] | None = None) -> None:
     ckpt_path = args.out / "checkpoint.pt"
 
     layout = MarkerLayout.load(args.layout)
-    train_data = synthetic(args, layout, args.pool_seed, args.identities)
-    val_data = synthetic(args, layout, args.pool_seed + 1000, 256)  # disjoint bodies
+    if not 0.0 <= args.motion_prob <= 1.0:
+        raise SystemExit(f"--motion-prob: expected a probability in [0, 1], got {args.motion_prob}")
+    motions = read_motions(args.motions)
+    train_data = synthetic(args, layout, args.pool_seed, args.identities, motions)
+    val_data = synthetic(args, layout, args.pool_seed + 1000, 256, motions)  # disjoint bodies
     val_gen = torch.Generator().manual_seed(10_000 + args.seed)
     size, count = min(256, args.val_frames), max(1, args.val_frames // 256)
     val = [val_data.sample(size, val_gen).to(device) for _ in range(count)]
@@ -322,6 +347,9 @@ def main(argv: list[str] | None = None) -> None:
         "cluster_radius": args.cluster_radius,
         "stick_prob": args.stick_prob,
         "head_bands": args.head_bands,
+        "motions": [Path(x).name for x in args.motions],
+        "motion_frames": 0 if motions is None else len(motions),
+        "motion_prob": args.motion_prob if args.motions else None,
         "orient_with": args.orient_with,
         "orienter_refine": args.orienter_refine if args.orient_with else None,
         "retry": args.retry if args.orient_with else None,

@@ -7,15 +7,18 @@ import importlib.util
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
+from unibody.io.motion import Motion, save_motion
 from unibody.mocap import labeler
 from unibody.mocap.corrupt import MocapBatch
 from unibody.mocap.labeler import Labeler, label_frames, labeling_loss, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.metrics import labeling_scores
 from unibody.mocap.synthetic import SyntheticConfig
+from unibody.poses import sample_poses
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "train_labeler.py"
 
@@ -267,13 +270,29 @@ def test_training_script_on_cuda_resumes_and_loads_on_the_cpu(tmp_path):
     assert abs(a.meta["synthetic_val_accuracy"] - b.meta["synthetic_val_accuracy"]) < 0.05
 
 
+def test_training_script_motions(tmp_path):
+    """``--motions`` trains on the frames of motion files; the weights name them. A file that is not
+    a motion, or a probability outside [0, 1], is refused before any work."""
+    poses = sample_poses(30, torch.Generator().manual_seed(8), bend=1.0)
+    save_motion(tmp_path / "m.npz", Motion(poses.numpy(), np.zeros((30, 3), np.float32), 30.0))
+    mod = _script()
+    mod.main(_args(tmp_path / "a", 3, "--motions", str(tmp_path / "m.npz"), "--motion-prob", "0.7"))
+    meta = Labeler.load(tmp_path / "a" / "labeler.pt").meta
+    assert meta["motions"] == ["m.npz"] and meta["motion_frames"] == 30 and meta["motion_prob"] == 0.7
+    np.savez(tmp_path / "bad.npz", pose=np.zeros((3, 76, 3)))
+    with pytest.raises(SystemExit, match="--motions: "):
+        mod.main(_args(tmp_path / "b", 3, "--motions", str(tmp_path / "bad.npz")))
+    with pytest.raises(SystemExit, match=r"--motion-prob: expected a probability in \[0, 1\], got 1.5"):
+        mod.main(_args(tmp_path / "b", 3, "--motions", str(tmp_path / "m.npz"), "--motion-prob", "1.5"))
+
+
 def test_training_script_slide_sets_one_segment_range():
     """``--slide FIN 0.1 1.0`` changes that rule's range along its bone and no other rule; an unknown
     suffix or a range with LO > HI is refused."""
     mod = _script()
     base = dict(subsets=[], neck_roll=None, extras=0, extra_distance=(0.03, float("inf")), stick_prob=0.9,
                 extra_prob=0.3, extra_clusters=0.0, cluster_size=3, cluster_radius=0.08, stature_prob=0.75,
-                head_bands=False, fitted=None, fold=None)  # fmt: skip
+                head_bands=False, fitted=None, fold=None, motion_prob=0.5)  # fmt: skip
     layout = MarkerLayout.load("cmu41")
     syn = mod.synthetic(argparse.Namespace(**base, slide=[["FIN", "0.1", "1.0"]]), layout, 0, 4)
     assert "fold" not in syn.config.pose  # --fold FRACTION: sample_poses(fold=FRACTION)

@@ -154,7 +154,7 @@ def test_training_script_trains_the_second_stage_only(tmp_path, monkeypatch):
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     configs, make = [], mod.SyntheticMocap
-    monkeypatch.setattr(mod, "SyntheticMocap", lambda layout, cfg: configs.append(cfg) or make(layout, cfg))
+    monkeypatch.setattr(mod, "SyntheticMocap", lambda layout, cfg, **kw: configs.append(cfg) or make(layout, cfg, **kw))
     tiny = ["--layout", "cmu41", "--batch", "8", "--threads", "1", "--width", "16", "--layers", "1", "--heads", "2",
             "--val-frames", "16", "--identities", "8", "--log-every", "1000"]  # fmt: skip
     mod.main([*tiny, "--steps", "3", "--out", str(tmp_path / "first")])

@@ -7,6 +7,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.mocap.layout import MarkerLayout, available_layouts, place_markers, vertex_normals
 from unibody.mocap.synthetic import POSE, SyntheticConfig, SyntheticMocap
 from unibody.poses import sample_poses
@@ -119,6 +120,53 @@ def test_synthetic_markers_match_full_mesh(synthetic):
     # with a skin offset the markers sit that far from their vertex, off the skin
     m1 = syn.markers(4, torch.Generator().manual_seed(5))
     assert torch.allclose((m1 - m).norm(dim=-1), torch.full((4, 39), 0.01), atol=1e-4)
+
+
+def _hips_world(layer, pose: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3) world rotation of the Hips of (B, 77, 3) poses."""
+    o = layer.tpose_orient
+    return o[0].T @ axis_angle_to_matrix(pose[:, 0]) @ o[1]
+
+
+def test_synthetic_motions_pose_a_fraction_of_the_samples_at_any_heading():
+    """With ``motions``, a fraction ``motion_prob`` of the poses are motion frames: every joint but the
+    Hips as in the frame, the Hips turned about the vertical only, to headings all around; the markers
+    are those of the full mesh in those poses; without draws of their own when motion_prob is 0."""
+    layout, cfg = MarkerLayout.load("cmu41"), _exact(0.0)
+    motions = sample_poses(3, torch.Generator().manual_seed(99), bend=1.0, tumble=0.5)  # not the recipe's stream
+    syn = SyntheticMocap(layout, replace(cfg, motion_prob=1.0), motions=motions.double())
+    pose = syn.poses(400, torch.Generator().manual_seed(1))
+    which = (pose[:, None, 1:] - motions[None, :, 1:]).abs().amax(dim=(2, 3)).argmin(1)
+    assert (pose[:, 1:] - motions[which, 1:]).abs().max() < 1e-6 and set(which.tolist()) == {0, 1, 2}
+    turn = _hips_world(syn.layer, pose) @ _hips_world(syn.layer, motions[which]).transpose(1, 2)
+    up = torch.tensor([0.0, 1.0, 0.0])
+    assert ((turn @ up) - up).abs().max() < 1e-5  # a turn about the vertical
+    heading = torch.rad2deg(torch.atan2(turn[:, 0, 2], turn[:, 0, 0]))
+    assert torch.histc(heading, bins=8, min=-180, max=180).min() > 25  # all around (50 per bin expected)
+    # a third of the samples from the motions, the rest from sample_poses
+    third = SyntheticMocap(layout, replace(cfg, motion_prob=1 / 3), motions=motions)
+    pose = third.poses(900, torch.Generator().manual_seed(2))
+    moved = (pose[:, None, 1:] - motions[None, :, 1:]).abs().amax(dim=(2, 3)).min(1).values < 1e-6
+    assert 0.28 < float(moved.float().mean()) < 0.39, moved.float().mean()
+    # the markers follow those poses (same stream as markers_and_extras: identity, then pose)
+    g = torch.Generator().manual_seed(5)
+    ident = torch.randint(8, (4,), generator=g)
+    out = syn.layer(syn.coefficients[ident], syn.poses(4, g))
+    ref = place_markers(out.vertices, syn.layer.faces, layout.vertices, torch.zeros(len(layout)))
+    assert (ref - syn.markers(4, torch.Generator().manual_seed(5))).abs().max() < 1e-4
+    # motion_prob 0 draws nothing more: the same batches as without motions
+    plain, none = SyntheticMocap(layout, cfg), SyntheticMocap(layout, replace(cfg, motion_prob=0.0), motions=motions)
+    a, b = (x.sample(16, torch.Generator().manual_seed(3)) for x in (plain, none))
+    assert torch.equal(a.points, b.points) and torch.equal(a.labels, b.labels)
+    for bad, match in (
+        (motions[:, :76], r"motions: expected shape \(F, 77, 3\)"),
+        (motions[:0], "motions: expected at least one frame"),
+        (motions.clone().fill_(float("nan")), "motions: expected finite"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            SyntheticMocap(layout, cfg, motions=bad)
+    with pytest.raises(ValueError, match="motion_prob: expected a probability in"):
+        SyntheticMocap(layout, replace(cfg, motion_prob=1.5))
 
 
 def test_synthetic_statures_follow_the_config():

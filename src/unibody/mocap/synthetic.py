@@ -3,8 +3,10 @@
 Bodies come from the native PCA shape space (all sizes and ages it spans, children
 included; by default three quarters of them get an adult stature, as in most mocap), poses
 from :func:`unibody.poses.sample_poses` (uniform heading; fractions tumbling, with the legs
-together, with the arms moving alike), markers from a
-:class:`~unibody.mocap.layout.MarkerLayout`. Per sample:
+together, with the arms moving alike) and, when motions are given (unibody motion files, e.g.
+AMASS sequences turned into canonical rotations by ``unibody invert``; the paper trains on
+AMASS), a fraction ``motion_prob`` from random frames of them turned to a uniform heading,
+markers from a :class:`~unibody.mocap.layout.MarkerLayout`. Per sample:
 
 - placement jitter: each marker moves to a random vertex near its layout vertex on the
   rest mesh, on the same side of the body (rest normals within ``jitter_cos``). The paper
@@ -33,11 +35,14 @@ frames takes milliseconds: data is made on the fly, never stored.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import torch
 
+from .._checks import check_finite, check_shape
 from ..body import BodyLayer, PreparedIdentity
+from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..poses import sample_poses
 from ..rig import Rig
 from .corrupt import MocapBatch, corrupt_frames
@@ -125,6 +130,8 @@ class SyntheticConfig:
             pyCGM's files): groups of ``cluster_size`` distinct extra-marker vertices within
             ``cluster_radius`` m of a random one on the mean rest mesh.
         pose: keyword arguments of :func:`unibody.poses.sample_poses` (default :data:`POSE`).
+        motion_prob: with ``motions`` (see :class:`SyntheticMocap`), the fraction of samples posed
+            from a random motion frame instead of ``sample_poses``.
         spread: m, the Hips are placed uniformly in a square of this half-width (lab floor).
     """
 
@@ -174,6 +181,7 @@ class SyntheticConfig:
     cluster_radius: float = 0.08
     cluster_size: int = 3
     pose: dict = field(default_factory=lambda: dict(POSE))
+    motion_prob: float = 0.5
     spread: float = 2.0
 
 
@@ -189,10 +197,28 @@ class SyntheticMocap:
     """Draw batches of labelled synthetic mocap frames for one layout (Y up, metres).
 
     ``config`` is kept as given, except that ``fitted`` clears its placement rules (segments,
-    loose radii, bands, wrist-bar labels): the rules then in force.
+    loose radii, bands, wrist-bar labels): the rules then in force. ``motions`` (F, 77, 3):
+    axis-angle poses in the unibody convention (``Motion.pose`` frames, any number of files
+    stacked); a fraction ``config.motion_prob`` of the samples takes one of them (:meth:`poses`).
     """
 
-    def __init__(self, layout: MarkerLayout, config: SyntheticConfig = SyntheticConfig(), *, chunk: int = 128):
+    def __init__(
+        self,
+        layout: MarkerLayout,
+        config: SyntheticConfig = SyntheticConfig(),
+        *,
+        chunk: int = 128,
+        motions: torch.Tensor | None = None,
+    ):
+        if not 0.0 <= config.motion_prob <= 1.0:
+            raise ValueError(f"motion_prob: expected a probability in [0, 1], got {config.motion_prob}")
+        if motions is not None:
+            check_shape(motions, "F 77 3", name="motions")
+            if not len(motions):
+                raise ValueError("motions: expected at least one frame, got 0")
+            check_finite(motions, "motions")
+            motions = motions.detach().to(torch.float32).clone()
+        self.motions = motions
         if config.fitted:  # the session's own placement: no guide rules
             config = replace(config, segments=(), loose=(), bands=(), stick_labels=())
         self.layout, self.config = layout, config
@@ -295,6 +321,23 @@ class SyntheticMocap:
             radii.append(groups[0] if groups else self.config.jitter_radius)
         return torch.tensor(radii)
 
+    def poses(self, batch: int, generator: torch.Generator) -> torch.Tensor:
+        """(B, 77, 3) poses: :func:`~unibody.poses.sample_poses`, of which a fraction ``motion_prob``
+        is replaced by random frames of ``motions`` turned about the vertical through the Hips to
+        a uniform heading (without motions, or with ``motion_prob`` 0, no further draws)."""
+        pose = sample_poses(batch, generator, **self.config.pose)
+        if self.motions is None or not self.config.motion_prob:
+            return pose
+        use = torch.rand(batch, generator=generator) < self.config.motion_prob
+        frame = self.motions[torch.randint(len(self.motions), (batch,), generator=generator)]
+        heading = 2 * math.pi * torch.rand(batch, 1, generator=generator)
+        turn = axis_angle_to_matrix(heading * torch.tensor([0.0, 1.0, 0.0]))
+        # the Hips' world rotation is O_root^T R O_hips (R: its pose entry); turn it: R -> O_root turn O_root^T R
+        o = self.layer.tpose_orient[0]
+        hips = matrix_to_axis_angle(o @ turn @ o.T @ axis_angle_to_matrix(frame[:, 0]))
+        frame = torch.cat([hips[:, None], frame[:, 1:]], dim=1)
+        return torch.where(use[:, None, None], frame, pose)
+
     def markers(self, batch: int, generator: torch.Generator) -> torch.Tensor:
         """Clean markers (B, M, 3), metres, Y up; NaN for markers outside a drawn subset."""
         return self.markers_and_extras(batch, generator, 0)[0]
@@ -312,7 +355,7 @@ class SyntheticMocap:
         """
         cfg, m = self.config, len(self.layout)
         ident = torch.randint(self.rest.shape[0], (batch,), generator=generator)
-        pose = sample_poses(batch, generator, **cfg.pose)
+        pose = self.poses(batch, generator)
         transl = (2 * torch.rand(batch, 3, generator=generator) - 1) * cfg.spread
         transl[:, 1] = 0.0
         prepared = PreparedIdentity(
