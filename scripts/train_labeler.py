@@ -26,9 +26,12 @@ weights file's ``meta["recipe"]`` and in benchmarks/README.md:
 
 Two runs side by side with ``--threads 1`` each use a 2-core machine best (one-stage runs
 about 2 steps/s each; second stages, their frozen first stage included, about 0.8 (cmu41)
-and 0.55 (pig39)); one run alone goes about 1.7x faster with ``--threads 2``. ``--device cuda`` trains the
-networks on a GPU; the synthetic data is still drawn on the CPU by the same generator, so the
-batches are the same on any device (the weights are not bit-identical across devices).
+and 0.55 (pig39)); one run alone goes about 1.7x faster with ``--threads 2``.
+
+``--device cuda`` trains the networks on a GPU; the synthetic data is still drawn on the CPU by
+the same generator, so the batches are the same on any device (the weights are not
+bit-identical across devices). ``--layers`` above the ``--init`` labeler's grows it deeper: the
+new blocks come last and start as the identity, so training starts from the labels it gave.
 ``--motions`` poses a fraction ``--motion-prob`` of the samples from the frames of unibody
 motion files (the paper trains on AMASS: its sequences, turned into canonical rotations by
 ``unibody invert``, fit here), each turned to a random heading; the shipped weights used none.
@@ -130,12 +133,24 @@ def init_from(model: Labeler, start: dict, start_names: tuple[str, ...], source:
     """Copy a labeler's weights (not its first stage) into ``model``, whose labels include ``start_names``.
 
     The score head's output rows follow the labels: rows of shared labels are copied, those
-    of new labels (a session layout's extra markers) keep their fresh initialisation.
+    of new labels (a session layout's extra markers) keep their fresh initialisation. A model
+    with more blocks than ``start`` (``--layers``) grows deeper: its extra blocks come last and
+    start as the identity (their attention and feed-forward outputs zero), so it labels as
+    ``start`` does until it trains.
     """
     own = model.state_dict()
     keys = [k for k in own if not k.startswith("orienter.") and k not in ("template", "torso")]
-    if missing := [k for k in keys if k not in start]:
+    depth = len({k.split(".")[1] for k in start if k.startswith("blocks.")})
+    if depth > len(model.blocks):
+        raise SystemExit(f"--init: {source} has {depth} blocks, more than --layers {len(model.blocks)}")
+    grown = [k for k in keys if k.startswith("blocks.") and int(k.split(".")[1]) >= depth]
+    if missing := [k for k in keys if k not in start and k not in grown]:
         raise SystemExit(f"--init: {source} lacks {missing[:3]}")
+    keys = [k for k in keys if k not in grown]
+    for block in list(model.blocks)[depth:]:
+        for layer in (block.proj, block.ffn[-1]):
+            torch.nn.init.zeros_(layer.weight)
+            torch.nn.init.zeros_(layer.bias)
     out, name = model.head[-1], f"head.{len(model.head) - 1}"
     rows = torch.tensor([model.label_names.index(x) for x in start_names])
     weight, bias = out.weight.detach().clone(), out.bias.detach().clone()

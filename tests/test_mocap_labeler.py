@@ -17,7 +17,7 @@ from unibody.mocap.corrupt import MocapBatch
 from unibody.mocap.labeler import Labeler, label_frames, labeling_loss, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.metrics import labeling_scores
-from unibody.mocap.synthetic import SyntheticConfig
+from unibody.mocap.synthetic import SyntheticConfig, SyntheticMocap
 from unibody.poses import sample_poses
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "train_labeler.py"
@@ -268,6 +268,25 @@ def test_training_script_on_cuda_resumes_and_loads_on_the_cpu(tmp_path):
     a, b = Labeler.load(tmp_path / "cpu" / "labeler.pt"), Labeler.load(tmp_path / "gpu" / "labeler.pt")
     assert b.bin_score.device.type == "cpu" and b.meta["device"] == "cuda" and b.meta["steps"] == 12
     assert abs(a.meta["synthetic_val_accuracy"] - b.meta["synthetic_val_accuracy"]) < 0.05
+
+
+def test_training_script_grows_a_labeler_deeper(tmp_path):
+    """``--init`` a labeler of fewer blocks than ``--layers``: the extra blocks start as the identity,
+    so before training it labels exactly as the labeler it grew from; fewer blocks are refused."""
+    mod = _script()
+    mod.main(_args(tmp_path / "a"))
+    grown = [*_args(tmp_path / "b"), "--layers", "3", "--steps", "0", "--init", str(tmp_path / "a" / "labeler.pt")]
+    mod.main(grown)
+    a, b = Labeler.load(tmp_path / "a" / "labeler.pt"), Labeler.load(tmp_path / "b" / "labeler.pt")
+    assert len(a.blocks) == 1 and len(b.blocks) == 3
+    batch = SyntheticMocap(MarkerLayout.load("cmu41"), SyntheticConfig(identities=4)).sample(
+        8, torch.Generator().manual_seed(0)
+    )
+    with torch.no_grad():
+        assert torch.equal(a(batch.points, batch.mask), b(batch.points, batch.mask))
+    assert not torch.equal(b.blocks[1].qkv.weight, b.blocks[2].qkv.weight)  # fresh, trainable inner layers
+    with pytest.raises(SystemExit, match="--init: .* has 3 blocks, more than --layers 1"):
+        mod.main([*_args(tmp_path / "c"), "--init", str(tmp_path / "b" / "labeler.pt")])
 
 
 def test_training_script_motions(tmp_path):
