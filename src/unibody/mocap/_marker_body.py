@@ -333,25 +333,28 @@ def frame_cost(body, x, local, obs, wt: Weights) -> torch.Tensor:
 
 
 def frame_system(body, x, jac, g_rot, local, obs, wt: Weights):
-    """Per-frame normal equations ``(H (B, N, N), g (B, N), row weights^2 (B, M))``; g = J^T W r."""
+    """:func:`frame_cost` (B,) and the per-frame normal equations at the same point:
+    ``(cost, H (B, N, N), g (B, N), row weights^2 (B, M))``; g = J^T W r."""
     b, m = x.shape[:2]
     r = torch.nan_to_num(x - obs)
-    _, w2 = _row_weights(r, wt)
+    data, w2 = _row_weights(r, wt)
     r = r * w2[..., None]
+    rp, jp = body.prior(local, g_rot)
+    cost = data.sum(1) + wt.prior.square() * rp.square().sum((1, 2))
     if wt.temporal is not None:
-        t2 = wt.temporal.square()
-        r = r + (x - wt.target) * t2[..., None]
+        t2, rt = wt.temporal.square(), x - wt.target
+        cost = cost + (rt * wt.temporal[..., None]).square().sum((1, 2))
+        r = r + rt * t2[..., None]
         w2 = w2 + t2
     jf = jac.reshape(b, 3 * m, -1)
     h = (jf * w2.repeat_interleave(3, 1)[..., None]).transpose(1, 2) @ jf
     g = (jf.transpose(1, 2) @ r.reshape(b, 3 * m, 1)).squeeze(-1)
-    rp, jp = body.prior(local, g_rot)
     p2 = wt.prior.square()[:, None, None, None]
     blocks = torch.cat([jp.new_zeros(b, 2, 3, 3), p2 * jp.transpose(-1, -2) @ jp], 1)  # transl, Hips: no prior
     h = h + _block_diag(blocks)
     gp = (p2[..., 0] * (jp.transpose(-1, -2) @ rp[..., None]).squeeze(-1)).reshape(b, -1)
     g = g + torch.cat([gp.new_zeros(b, 6), gp], 1)
-    return h, g, w2
+    return cost, h, g, w2
 
 
 def lm_iteration(body, ident, anchors, p, local, transl, obs, wt: Callable, lam):
@@ -366,8 +369,7 @@ def lm_iteration(body, ident, anchors, p, local, transl, obs, wt: Callable, lam)
     b = local.shape[0]
     x, g_rot, jac, _ = body.markers(ident, anchors, p, local, transl, jacobian=True)
     w = wt(x)
-    cost = frame_cost(body, x, local, obs, w)
-    h, g, _ = frame_system(body, x, jac, g_rot, local, obs, w)
+    cost, h, g, _ = frame_system(body, x, jac, g_rot, local, obs, w)
     done = torch.zeros(b, dtype=torch.bool, device=local.device)
     for _ in range(3):
         step = -torch.cholesky_solve(g[..., None], _damped_cholesky(h, lam)).squeeze(-1)

@@ -111,8 +111,8 @@ class _Stage1:
         jd = _block_diag(blend).view(f_count, m, 3, 3 * m)  # d x_m / d delta_m = blended rotation
         jz = torch.cat([jb, jd], -1).reshape(f_count, 3 * m, -1)
         wt = Weights(self.w_data, local.new_full((f_count,), w["pose"]), robust=self.cfg.robust)
-        cost = lat_cost + frame_cost(body, x, local, self.obs, wt).sum()
-        h_ff, g_f, w2 = frame_system(body, x, jac, g_rot, local, self.obs, wt)
+        f_cost, h_ff, g_f, w2 = frame_system(body, x, jac, g_rot, local, self.obs, wt)
+        cost = lat_cost + f_cost.sum()
         w2r = w2.repeat_interleave(3, 1)[..., None]
         h_fz = (jac.reshape(f_count, 3 * m, -1) * w2r).transpose(1, 2) @ jz
         h_zz = ((jz * w2r).transpose(1, 2) @ jz).sum(0)
