@@ -8,6 +8,14 @@ import torch
 
 from unibody.rig import Rig
 
+from hypothesis import HealthCheck, settings
+
+# Property-based tests (tests/fuzz): seeded and bounded so the default suite stays fast; the long
+# run is `pytest tests/fuzz --hypothesis-profile=long`.
+_FUZZ = dict(derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow], database=None)
+settings.register_profile("default", max_examples=30, **_FUZZ)
+settings.register_profile("long", max_examples=1000, **_FUZZ)
+
 TOL = {torch.float32: 1e-5, torch.float64: 1e-10}
 
 

@@ -1,0 +1,155 @@
+"""Output files that never lose data: checked paths, atomic writes, one writer per output.
+
+A file is written to a unique temporary file in its own folder (created exclusively, so a
+link planted there is never followed), flushed to disk, then renamed over the target: a
+reader sees the old file or the new one, never half of one, and a full disk or a kill
+leaves the previous output intact. :func:`check_output` refuses an output that is the
+input, a folder, in a missing folder, of the wrong suffix, or that exists (unless
+``force``); :func:`output_lock` refuses a second process writing the same output.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import tempfile
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+__all__ = ["OutputError", "atomic_path", "atomic_write", "check_output", "output_lock", "save_npz"]
+
+
+class OutputError(ValueError):
+    """An output path that would lose data or cannot be written (the message names it)."""
+
+
+def check_output(
+    out: str | os.PathLike[str],
+    *,
+    inputs: Iterable[str | os.PathLike[str]] = (),
+    suffixes: Iterable[str] = (),
+    force: bool = False,
+    name: str = "--out",
+) -> Path:
+    """Check that ``out`` may be written and return it as a Path.
+
+    Args:
+        out: the output file.
+        inputs: files the same run reads; ``out`` may be none of them.
+        suffixes: accepted suffixes (``".npz"``, ...), case-insensitive; empty accepts any.
+        force: whether an existing output may be replaced.
+        name: the argument's name in messages.
+
+    Raises:
+        OutputError: ``out`` is an input, a folder, lies in a missing folder, has another
+            suffix, or exists and ``force`` is false.
+    """
+    path = Path(out)
+    allowed = tuple(s.lower() for s in suffixes)
+    if allowed and path.suffix.lower() not in allowed:
+        raise OutputError(f"{name}: expected a {' or '.join(allowed)} file, got {str(path)!r}")
+    if path.is_dir():
+        raise OutputError(f"{name}: {path} is a folder; name a file")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise OutputError(f"{name}: folder {parent} does not exist")
+    for src in inputs:
+        if _same_file(path, Path(src)):
+            raise OutputError(f"{name}: {path} is the input file {src}; name another output")
+    if path.exists() and not force:
+        raise OutputError(f"{name}: {path} exists; pass --force to replace it")
+    return path
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist
+        return a.resolve() == b.resolve()
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a fresh temporary path beside ``path`` (same suffix); on success it replaces ``path``.
+
+    For writers that take a file name (ezc3d, torch.save, PIL). The temporary file is created
+    exclusively with a unique name; it is fsynced and renamed over ``path`` when the block
+    ends without an exception, and removed otherwise.
+    """
+    path = Path(path)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent or ".")
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        _fsync_dir(path.parent)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO]:
+    """Open a temporary file beside ``path`` for writing; on success it replaces ``path`` (see :func:`atomic_path`)."""
+    with atomic_path(path) as tmp, open(tmp, mode) as f:
+        yield f
+
+
+def save_npz(path: str | os.PathLike[str], **arrays: np.ndarray) -> None:
+    """Write an ``.npz`` atomically, exactly at ``path`` (numpy would append ``.npz`` to a name)."""
+    with atomic_write(path) as f:
+        np.savez(f, **arrays)
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder or ".", os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # some file systems cannot sync a folder; the rename is still atomic
+        pass
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def output_lock(path: str | os.PathLike[str], name: str = "--out") -> Iterator[None]:
+    """Hold ``<path>.lock`` for the block; raise OutputError if another process holds it.
+
+    The lock is an advisory ``flock``: the system releases it when its holder dies, so a
+    killed run never leaves a lock that blocks the next one.
+    """
+    import fcntl
+
+    lock = Path(f"{path}.lock")
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise OutputError(f"{name}: another process is writing {path} (lock {lock})") from None
+            raise
+        # The previous holder may have removed the file between our open and our lock: retry on the new one.
+        try:
+            same = os.stat(lock).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        yield
+    finally:
+        lock.unlink(missing_ok=True)
+        os.close(fd)
