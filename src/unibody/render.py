@@ -578,4 +578,7 @@ def render_png(
         camera=camera,
         supersample=supersample,
     )
-    Image.fromarray(image, mode="RGB").save(os.fspath(path), format="PNG")
+    from .io.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(image, mode="RGB").save(os.fspath(tmp), format="PNG")

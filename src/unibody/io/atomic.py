@@ -5,7 +5,9 @@ link planted there is never followed), flushed to disk, then renamed over the ta
 reader sees the old file or the new one, never half of one, and a full disk or a kill
 leaves the previous output intact. :func:`check_output` refuses an output that is the
 input, a folder, in a missing folder, of the wrong suffix, or that exists (unless
-``force``); :func:`output_lock` refuses a second process writing the same output.
+``force``); :func:`output_lock` refuses a second process writing the same output, and
+:func:`waiting_lock` makes it wait its turn instead (a cache that one process builds and the
+others then read).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from typing import IO
 
 import numpy as np
 
-__all__ = ["OutputError", "atomic_path", "atomic_write", "check_output", "output_lock", "save_npz"]
+__all__ = ["OutputError", "atomic_path", "atomic_write", "check_output", "output_lock", "save_npz", "waiting_lock"]
 
 
 class OutputError(ValueError):
@@ -87,12 +89,25 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     try:
         yield tmp
         with open(tmp, "rb+") as f:
+            if os.fstat(f.fileno()).st_size == 0:  # a writer that failed without raising (seen with C3D writers)
+                raise OutputError(f"{path}: the writer produced an empty file; nothing was replaced")
             os.fsync(f.fileno())
+        os.chmod(tmp, _mode(path))
         os.replace(tmp, path)
         _fsync_dir(path.parent)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _mode(path: Path) -> int:
+    """The permissions a plain ``open(path, "w")`` would give (mkstemp makes 0600): kept if ``path`` exists."""
+    try:
+        return os.stat(path).st_mode & 0o777
+    except OSError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask
 
 
 @contextlib.contextmanager
@@ -141,6 +156,61 @@ def output_lock(path: str | os.PathLike[str], name: str = "--out") -> Iterator[N
                 raise OutputError(f"{name}: another process is writing {path} (lock {lock})") from None
             raise
         # The previous holder may have removed the file between our open and our lock: retry on the new one.
+        try:
+            same = os.stat(lock).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        yield
+    finally:
+        lock.unlink(missing_ok=True)
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def waiting_lock(path: str | os.PathLike[str], timeout: float | None = None, poll: float = 0.05) -> Iterator[None]:
+    """Hold ``<path>.lock`` for the block, waiting for another process that holds it.
+
+    The waiting twin of :func:`output_lock` (same advisory ``flock``, released by the system
+    when its holder dies, so a killed holder never blocks the next process for good).
+
+    Args:
+        path: the file the lock protects.
+        timeout: the most seconds to wait; None waits as long as the holder runs.
+        poll: seconds between two tries while waiting with a timeout.
+
+    Raises:
+        TimeoutError: another process still held the lock after ``timeout`` seconds.
+        OSError: the lock file cannot be created (e.g. the folder is not writable).
+    """
+    import fcntl
+    import time
+
+    lock = Path(f"{path}.lock")
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            if deadline is None:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            else:
+                while True:
+                    try:
+                        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                        break
+                    except OSError as exc:
+                        if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                            raise
+                        if time.monotonic() >= deadline:
+                            raise TimeoutError(f"another process held {lock} for over {timeout:g} s") from None
+                        time.sleep(poll)
+        except BaseException:
+            os.close(fd)
+            raise
+        # The previous holder removes the file when it is done: lock the file now at that path.
         try:
             same = os.stat(lock).st_ino == os.fstat(fd).st_ino
         except FileNotFoundError:

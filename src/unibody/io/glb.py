@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .atomic import atomic_write
+
 __all__ = ["MeshSpec", "mesh_list", "vertex_normals", "write_glb", "read_glb_positions", "read_glb_indices"]
 
 _GLB_MAGIC = 0x46546C67  # b"glTF"
@@ -222,7 +224,7 @@ def write_glb(path: str | os.PathLike[str], meshes: Sequence[MeshSpec]) -> None:
     json_chunk = _pad4(json.dumps(gltf, separators=(",", ":")).encode("utf-8"), b" ")
     bin_chunk = bytes(blob)  # already padded to 4
     total = 12 + 8 + len(json_chunk) + 8 + len(bin_chunk)
-    with open(path, "wb") as fh:
+    with atomic_write(path) as fh:
         fh.write(struct.pack("<III", _GLB_MAGIC, _GLB_VERSION, total))
         fh.write(struct.pack("<II", len(json_chunk), _CHUNK_JSON))
         fh.write(json_chunk)

@@ -15,18 +15,36 @@ Motion file fields:
 
 Mesh-sequence file fields: ``vertices (T, N, 3)`` metres and ``topology`` (``"canonical"``
 or an identity backend's name such as ``"anny"``), optionally ``identity (K,)``.
+
+Readers check every field (shape, dtype, finite values, ``fps > 0``) and raise ``ValueError``
+naming the file and the field; a file that is not an npz at all (empty, truncated, random
+bytes, pickled) gets the same one-line error. Writers are atomic and write exactly the path
+given (numpy alone would append ``.npz`` to a name without it).
 """
 
 from __future__ import annotations
 
+import contextlib
+import zipfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..rig import JOINT_NAMES
+from .atomic import save_npz
 
-__all__ = ["MOTION_FORMAT", "Motion", "MeshSequence", "load_mesh_sequence", "load_motion", "save_motion"]
+__all__ = [
+    "MOTION_FORMAT",
+    "Motion",
+    "MeshSequence",
+    "check_fps",
+    "load_mesh_sequence",
+    "load_motion",
+    "read_npz",
+    "save_motion",
+]
 
 MOTION_FORMAT = "unibody.motion/1"
 
@@ -51,49 +69,152 @@ class MeshSequence:
     identity: np.ndarray | None = None
 
 
+@contextlib.contextmanager
+def read_npz(path: str | Path) -> Iterator[np.lib.npyio.NpzFile]:
+    """Open an ``.npz`` without pickles; anything that is not one raises ``ValueError`` naming ``path``.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: ``path`` is a folder, empty, truncated, not a zip of arrays, or holds pickled objects.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder, expected an .npz file")
+    try:
+        data = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"{path}: not a readable .npz file ({_reason(exc)})") from None
+    if not isinstance(data, np.lib.npyio.NpzFile):  # a bare .npy array
+        raise ValueError(f"{path}: expected an .npz file of named arrays, got a single .npy array")
+    with data:
+        yield data
+
+
+def _reason(exc: BaseException) -> str:
+    if isinstance(exc, EOFError) or "No data left" in str(exc):
+        return "empty or truncated"
+    if "pickled" in str(exc):
+        return "not a zip of arrays; pickled objects are never loaded"
+    return str(exc) or type(exc).__name__
+
+
+def _field(data: np.lib.npyio.NpzFile, key: str, path: str | Path) -> np.ndarray:
+    """One array of an open npz; a damaged member raises ValueError naming the file and field."""
+    try:
+        return data[key]
+    except KeyError:
+        raise ValueError(f"{path}: missing field {key!r} (fields: {', '.join(data.files) or 'none'})") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"{path}: field {key!r} is unreadable ({_reason(exc)})") from None
+
+
+def _floats(x: np.ndarray, shape: str, ok: bool, where: str) -> np.ndarray:
+    """Check a numeric array (shape already tested as ``ok``) and return it as float32."""
+    if not ok:
+        raise ValueError(f"{where}: expected shape {shape}, got {x.shape}")
+    if x.dtype.kind != "f":
+        raise ValueError(f"{where}: expected floating-point numbers, got dtype {x.dtype}")
+    bad = int(np.size(x) - np.isfinite(x).sum())
+    if bad:
+        raise ValueError(f"{where}: expected finite values, got {bad} NaN/inf entries")
+    return x.astype(np.float32, copy=False)
+
+
+def _text(x: np.ndarray, where: str) -> str:
+    if x.shape != () or x.dtype.kind not in "US":
+        raise ValueError(f"{where}: expected a string, got an array of shape {x.shape} and dtype {x.dtype}")
+    return str(x)
+
+
+def check_fps(fps: object, name: str = "fps") -> float:
+    """Frames per second as a float: finite and positive (and at most 100,000)."""
+    try:
+        value = float(fps)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a positive number, got {fps!r}") from None
+    if not (np.isfinite(value) and 0 < value <= 1e5):
+        raise ValueError(f"{name}: expected a positive number of frames per second (at most 100000), got {fps!r}")
+    return value
+
+
+def _check_motion(pose: np.ndarray, transl: np.ndarray, identity: np.ndarray | None, where: str) -> tuple:
+    pose = _floats(np.asarray(pose), "(T, 77, 3)", np.ndim(pose) == 3 and np.shape(pose)[1:] == (77, 3), f"{where}pose")
+    t = pose.shape[0]
+    transl = np.asarray(transl)
+    transl = _floats(transl, f"({t}, 3)", transl.shape == (t, 3), f"{where}transl")
+    if identity is not None:
+        identity = np.asarray(identity)
+        identity = _floats(identity, "(K,)", identity.ndim == 1 and identity.size > 0, f"{where}identity")
+    return pose, transl, identity
+
+
 def save_motion(path: str | Path, motion: Motion) -> None:
-    """Write a motion file (see the module docstring for the fields)."""
-    pose, transl = np.asarray(motion.pose, np.float32), np.asarray(motion.transl, np.float32)
-    if pose.ndim != 3 or pose.shape[1:] != (77, 3):
-        raise ValueError(f"pose: expected shape (T, 77, 3), got {pose.shape}")
-    if transl.shape != (pose.shape[0], 3):
-        raise ValueError(f"transl: expected shape ({pose.shape[0]}, 3), got {transl.shape}")
+    """Write a motion file atomically, exactly at ``path`` (see the module docstring for the fields).
+
+    Raises:
+        ValueError: a field has the wrong shape, is not finite, or ``fps`` is not positive.
+    """
+    pose, transl, identity = _check_motion(motion.pose, motion.transl, motion.identity, "")
     fields = {
         "format": np.asarray(MOTION_FORMAT),
         "pose": pose,
         "transl": transl,
         "joint_names": np.asarray(JOINT_NAMES[1:]),
-        "fps": np.asarray(motion.fps, np.float32),
+        "fps": np.asarray(check_fps(motion.fps), np.float32),
     }
-    if motion.identity is not None:
-        fields["identity"] = np.asarray(motion.identity, np.float32)
+    if identity is not None:
+        fields["identity"] = identity
         fields["identity_backend"] = np.asarray(motion.identity_backend or "")
-    np.savez(path, **fields)
+    save_npz(path, **fields)
 
 
 def load_motion(path: str | Path) -> Motion:
-    """Read a motion file, checking its format and joint order."""
-    with np.load(path, allow_pickle=False) as data:
-        if "format" not in data.files or str(data["format"]) != MOTION_FORMAT:
-            raise ValueError(f"{path}: not a {MOTION_FORMAT} file (fields: {', '.join(data.files)})")
-        names = tuple(str(n) for n in data["joint_names"])
-        if names != JOINT_NAMES[1:]:
+    """Read a motion file, checking its format, joint order and every field.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: not a motion file, or a field is malformed (the message names the file and field).
+    """
+    with read_npz(path) as data:
+        fmt = _field(data, "format", path) if "format" in data.files else None
+        if fmt is None or fmt.shape != () or str(fmt) != MOTION_FORMAT:
+            raise ValueError(f"{path}: not a {MOTION_FORMAT} file (fields: {', '.join(data.files) or 'none'})")
+        names = _field(data, "joint_names", path)
+        if names.dtype.kind not in "US" or tuple(str(n) for n in names.reshape(-1)) != JOINT_NAMES[1:]:
             raise ValueError(f"{path}: joint_names differ from unibody.JOINT_NAMES[1:]")
-        identity = data["identity"] if "identity" in data.files else None
-        backend = str(data["identity_backend"]) if "identity_backend" in data.files else None
-        return Motion(data["pose"], data["transl"], float(data["fps"]), identity, backend or None)
+        identity = _field(data, "identity", path) if "identity" in data.files else None
+        pose, transl, identity = _check_motion(
+            _field(data, "pose", path), _field(data, "transl", path), identity, f"{path}: "
+        )
+        fps = _field(data, "fps", path)
+        if fps.shape != () or fps.dtype.kind not in "fiu":
+            raise ValueError(f"{path}: fps: expected a number, got shape {fps.shape} and dtype {fps.dtype}")
+        fps = check_fps(fps, f"{path}: fps")
+        backend = None
+        if "identity_backend" in data.files:
+            backend = _text(_field(data, "identity_backend", path), f"{path}: identity_backend") or None
+        return Motion(pose, transl, fps, identity, backend)
 
 
 def load_mesh_sequence(path: str | Path) -> MeshSequence:
-    """Read a mesh-sequence file (``vertices`` and ``topology`` fields)."""
-    with np.load(path, allow_pickle=False) as data:
+    """Read a mesh-sequence file (``vertices`` and ``topology`` fields), checking every field.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: a field is missing or malformed (the message names the file and field).
+    """
+    with read_npz(path) as data:
         missing = {"vertices", "topology"} - set(data.files)
         if missing:
             raise ValueError(
                 f"{path}: missing field(s) {', '.join(sorted(missing))}; expected vertices (T, N, 3) and topology"
             )
-        vertices = data["vertices"]
-        if vertices.ndim != 3 or vertices.shape[2] != 3:
-            raise ValueError(f"{path}: vertices: expected shape (T, N, 3), got {vertices.shape}")
-        identity = data["identity"] if "identity" in data.files else None
-        return MeshSequence(vertices, str(data["topology"]), identity)
+        v = _field(data, "vertices", path)
+        vertices = _floats(v, "(T, N, 3)", v.ndim == 3 and v.shape[2] == 3, f"{path}: vertices")
+        identity = _field(data, "identity", path) if "identity" in data.files else None
+        if identity is not None:
+            ok = identity.ndim == 1 and identity.size > 0
+            identity = _floats(identity, "(K,)", ok, f"{path}: identity")
+        return MeshSequence(vertices, _text(_field(data, "topology", path), f"{path}: topology"), identity)
