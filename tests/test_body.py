@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
-from unibody import BodyLayer, joint_index
+from unibody import JOINT_NAMES, BodyLayer, joint_index
 from unibody.geometry.kinematics import relative_to_parent
 from unibody.geometry.rotations import axis_angle_to_matrix, matrix_to_rot6d
 
@@ -144,7 +146,7 @@ def test_bad_transl_and_prepared(layer, bind, rig):
         layer.pose(two, torch.zeros(3, 77, 3, dtype=torch.float64))
     with pytest.raises(TypeError, match="prepared: expected a PreparedIdentity"):
         layer.pose(rig.bind_vertices, pose)
-    with pytest.raises(ValueError, match=r"vertices: expected shape \(B, 18056, 3\), got \(1, 100, 3\)"):
+    with pytest.raises(ValueError, match=r"rest_vertices: expected shape \(B, 18056, 3\), got \(1, 100, 3\)"):
         layer.prepare_rest(torch.zeros(1, 100, 3, dtype=torch.float64))
     with pytest.raises(ValueError, match="params: this layer has no identity backend"):
         layer.prepare_identity(torch.zeros(1, 6, dtype=torch.float64))
@@ -175,3 +177,143 @@ def test_anny_param_errors(anny_layer64):
         anny_layer64.prepare_identity(ok[:, :5])
     with pytest.raises(ValueError, match="identity params: expected finite values"):
         anny_layer64.prepare_identity(ok * float("nan"))
+
+
+# --------------------------------------------------------------------------- hardening (issue 35)
+
+
+def _eye(b, dtype=torch.float64):
+    return torch.eye(3, dtype=dtype).expand(b, 77, 3, 3).clone()
+
+
+def _scaled(x, b, j, factor):
+    x = x.clone()
+    x[b, j] *= factor
+    return x
+
+
+@pytest.mark.parametrize(
+    ("make", "match"),
+    [
+        (lambda: torch.zeros(1, 77, 3, 3, dtype=torch.float64), r"joint 'Hips' \(pose index 0, batch 0\).*= 1 > 1e-05"),
+        (lambda: 100 * _eye(1), r"max \|R\^T R - I\| = 1e\+04 > 1e-05"),
+        (lambda: -_eye(1), r"det = -1 \(a reflection, not a rotation\)"),
+        (lambda: _scaled(_eye(2), 1, 17, 1.001), rf"joint '{JOINT_NAMES[18]}' \(pose index 17, batch 1\).*= 0.002"),
+        (lambda: torch.full((1, 77, 3, 3), 1e200, dtype=torch.float64), r"= (inf|nan) > 1e-05"),
+    ],
+    ids=["zeros", "scaled", "reflection", "one_joint", "overflow"],
+)
+def test_matrix_pose_must_be_rotations(layer, bind, make, match):
+    with pytest.raises(ValueError, match=r"pose: rotation matrix of .*" + match):
+        layer.pose(bind, make())
+
+
+def test_matrix_pose_tolerance_and_worst_joint(rig):
+    l32 = BodyLayer(rig).float()
+    b32 = l32.prepare_rest(rig.bind_vertices[None].float())
+    ok = axis_angle_to_matrix(0.3 * torch.randn(2, 77, 3, generator=torch.Generator().manual_seed(1)))
+    l32.pose(b32, ok * (1 + 4e-4))  # within float32's 1e-3
+    bad = ok.clone()
+    bad[1, 5] *= 1.01
+    bad[0, 9] *= 1.002
+    name = rig.joint_names[6]
+    with pytest.raises(ValueError, match=rf"joint '{name}' \(pose index 5, batch 1\).*> 0.001 .*for float32"):
+        l32.pose(b32, bad)
+
+
+@pytest.mark.parametrize(
+    ("six", "match"),
+    [
+        (lambda x: x.zero_(), r"norms 0 and 0 \(expected finite and >= 1e-06\)"),
+        (lambda x: x[0, 3, 3:].zero_(), rf"'{JOINT_NAMES[4]}' \(pose index 3, batch 0\) is degenerate: .*norms 1 and 0"),
+        (lambda x: x[0, 4, 3:].copy_(-2 * x[0, 4, :3]), r"\(pose index 4, batch 0\).*\(near-\)parallel"),
+        (lambda x: x[0, 4, :3].fill_(1e300), r"norms inf and 1"),
+    ],
+    ids=["zeros", "zero_half", "antiparallel", "overflow"],
+)
+def test_rot6d_pose_must_not_be_degenerate(layer, bind, six, match):
+    x = matrix_to_rot6d(_eye(1))
+    six(x)
+    with pytest.raises(ValueError, match=r"pose: 6D rotation of joint .*" + match):
+        layer.pose(bind, x)
+
+
+def test_rot6d_accepts_unnormalized(layer, bind):
+    x = matrix_to_rot6d(axis_angle_to_matrix(0.3 * torch.randn(1, 77, 3, dtype=torch.float64)))
+    ref = layer.pose(bind, x).vertices
+    assert (layer.pose(bind, torch.cat([3e4 * x[..., :3], 1e-3 * x[..., 3:]], -1)).vertices - ref).abs().max() < 1e-9
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_huge_axis_angle_is_a_finite_correct_rotation(rig, dtype):
+    """1e20 rad gave NaN vertices in float32: the angle is now reduced modulo 2 pi exactly."""
+    layer = BodyLayer(rig).to(dtype)
+    bind = layer.prepare_rest(rig.bind_vertices[None].to(dtype))
+    pose = torch.zeros(1, 77, 3, dtype=dtype)
+    pose[0, 17, 0] = 1e20
+    out = layer.pose(bind, pose).vertices
+    assert torch.isfinite(out).all()
+    # The same rotation as a matrix from Python's sin/cos, which reduce the argument exactly.
+    theta = float(pose[0, 17, 0])
+    c, s = math.cos(theta), math.sin(theta)
+    ref = torch.eye(3, dtype=torch.float64).repeat(1, 77, 1, 1)
+    ref[0, 17] = torch.tensor([[1.0, 0, 0], [0, c, -s], [0, s, c]], dtype=torch.float64)
+    l64 = BodyLayer(rig)
+    expected = l64.pose(l64.prepare_rest(rig.bind_vertices[None]), ref).vertices
+    assert (out.double() - expected).abs().max() < (1e-4 if dtype == torch.float32 else 1e-12)  # as float32 vs 64
+
+
+def test_non_finite_outputs_are_refused(layer, bind):
+    """Checked inputs cannot overflow, a hand-built prepared identity can: refused, not NaN."""
+    huge = type(bind)(bind.rest_vertices.clone().fill_(1.7e308), *(getattr(bind, f) for f in bind.__slots__[1:]))
+    pose = 0.5 * torch.randn(1, 77, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    with pytest.raises(ValueError, match="pose: posing gave non-finite vertices or joints"):
+        layer.pose(huge, pose)
+    layer.pose(bind, pose, transl=torch.full((1, 3), 1e300, dtype=torch.float64))  # huge but finite: allowed
+
+
+@pytest.mark.parametrize(
+    ("scale", "match"),
+    [
+        (0.0, r"diagonal 0 m at batch 0 is outside \[0.1, 10\] m; the mesh is collapsed to a point"),
+        (1e-3, r"diagonal 0.00\d+ m .*collapsed or scaled down \(not in metres\?\)"),
+        (100.0, r"diagonal 2\d\d.\d* m .*not in metres: in centimetres \(divide by 100\)"),
+        (1000.0, r"not in metres: in millimetres \(divide by 1000\)"),
+        (1e300, r"diagonal inf m .*overflows"),
+    ],
+)
+def test_prepare_rest_refuses_degenerate_meshes(layer, rig, scale, match):
+    with pytest.raises(ValueError, match=r"rest_vertices: bounding-box .*" + match):
+        layer.prepare_rest(rig.bind_vertices[None] * scale)
+
+
+def test_prepare_rest_checks_type_dtype_and_finite(layer, rig):
+    v = rig.bind_vertices[None]
+    layer.prepare_rest(v * 1.7)  # a 3 m giant is fine
+    with pytest.raises(TypeError, match="rest_vertices: is float32 on cpu but the layer is float64"):
+        layer.prepare_rest(v.float())
+    with pytest.raises(ValueError, match="rest_vertices: expected finite values, got 1 NaN/inf"):
+        layer.prepare_rest(_with_nan(v))
+    with pytest.raises(TypeError, match="rest_vertices: expected a torch.Tensor"):
+        layer.prepare_rest(v.numpy())
+    with pytest.raises(ValueError, match="rest_vertices: bounding-box diagonal .* at batch 1 "):
+        layer.prepare_rest(torch.cat([v, torch.zeros_like(v)]))
+
+
+def _with_nan(v):
+    v = v.clone()
+    v[0, 5, 1] = float("nan")
+    return v
+
+
+@pytest.mark.parametrize("procedural", [False, True], ids=["plain", "twist"])
+def test_empty_batch_everywhere(rig, procedural):
+    layer = BodyLayer(rig, procedural=procedural)
+    v = rig.num_vertices
+    prepared = layer.prepare_rest(rig.bind_vertices[None][:0])
+    assert prepared.rest_vertices.shape == (0, v, 3) and prepared.offsets.shape == (0, 78, 3)
+    for pose in (torch.zeros(0, 77, 3), torch.zeros(0, 77, 3, 3), torch.zeros(0, 77, 6)):
+        for prep in (prepared, layer.prepare_rest(rig.bind_vertices[None])):
+            out = layer.pose(prep, pose.double())
+            assert out.vertices.shape == (0, v, 3) and out.joints.shape == (0, 78, 3)
+            assert out.transforms.shape == (0, 78, 4, 4) and out.rest_vertices.shape == (0, v, 3)

@@ -186,18 +186,28 @@ def test_errors(pca64, tmp_path):
         PCAIdentity.from_asset(num_components=129)
     with pytest.raises(ValueError, match="num_components"):
         PCAIdentity.from_asset(num_components=0)
-    with pytest.raises(ValueError, match=r"coeffs: expected shape \(B, 128\), got \(2, 5\)"):
+    with pytest.raises(ValueError, match=r"identity params: expected shape \(B, 128\), got \(2, 5\)"):
         pca64(torch.zeros(2, 5, dtype=torch.float64))
-    with pytest.raises(ValueError, match=r"coeffs: expected shape \(B, 128\), got \(128,\)"):
+    with pytest.raises(ValueError, match=r"identity params: expected shape \(B, 128\), got \(128,\)"):
         pca64(torch.zeros(128, dtype=torch.float64))
     bad = torch.zeros(1, 128, dtype=torch.float64)
     bad[0, 3] = float("nan")
-    with pytest.raises(ValueError, match="coeffs: expected finite values, got 1 NaN/inf"):
+    with pytest.raises(ValueError, match="identity params: expected finite values, got 1 NaN/inf"):
         pca64(bad)
-    with pytest.raises(TypeError, match="coeffs: is float32 on cpu but the PCA backend is float64"):
+    with pytest.raises(TypeError, match="identity params: is float32 on cpu but the PCA backend is float64"):
         pca64(torch.zeros(1, 128))
-    with pytest.raises(TypeError, match="coeffs: expected a torch.Tensor"):
+    with pytest.raises(TypeError, match="identity params: expected a torch.Tensor"):
         pca64(np.zeros((1, 128)))
+    lo, hi = pca64.param_bounds
+    assert lo.shape == hi.shape == (128,) and torch.equal(lo, -hi)
+    assert float(hi[0]) == pytest.approx(10.0) and torch.allclose(hi * pca64.std, 10 * pca64.std[0])
+    huge = torch.zeros(2, 128, dtype=torch.float64)
+    huge[1, 5] = 1e30
+    with pytest.raises(ValueError, match=r"identity params: coefficient pc005 = 1e\+30 at batch 1 is outside \[-"):
+        pca64(huge)
+    with pytest.raises(ValueError, match=r"identity params: coefficient pc000 = -10.01 at batch 0 is outside \[-10, 10\]"):
+        pca64(torch.full((1, 128), -10.01, dtype=torch.float64))
+    assert torch.isfinite(pca64(hi[None])).all() and torch.isfinite(pca64(lo[None])).all()  # inclusive
     mesh = pca64.mean[None]
     with pytest.raises(ValueError, match=r"num_components: expected an int in \[1, 128\], got 200"):
         pca64.project(mesh, 200)
@@ -393,5 +403,17 @@ def test_demo_with_two_backends(tmp_path):
 
     assert main(["demo", "--backends", "anny", "pca", "--out", str(tmp_path)]) == 0
     assert (tmp_path / "demo.glb").stat().st_size > 0 and (tmp_path / "demo.png").stat().st_size > 0
-    with pytest.raises(SystemExit, match="--backends: unknown backend 'smplz'"):
-        main(["demo", "--backends", "smplz", "--out", str(tmp_path)])
+    # The CLI reports argument errors as one line and exit code 2 (no SystemExit since 82badfa).
+    assert main(["demo", "--backends", "smplz", "--out", str(tmp_path)]) == 2
+
+
+def test_empty_batch():
+    """B = 0 gives empty outputs of the right shapes (it used to fail reshaping 0 elements)."""
+    layer = BodyLayer.from_pca(num_components=10)
+    v = layer.num_vertices
+    assert layer.identity(torch.zeros(0, 10)).shape == (0, v, 3)
+    prepared = layer.prepare_identity(torch.zeros(0, 10))
+    assert prepared.rest_vertices.shape == (0, v, 3) and prepared.rest_rotations.shape == (0, 78, 3, 3)
+    out = layer(torch.zeros(0, 10), torch.zeros(0, 77, 3))
+    assert out.vertices.shape == (0, v, 3) and out.joints.shape == (0, 78, 3)
+    assert out.transforms.shape == (0, 78, 4, 4) and out.rest_vertices.shape == (0, v, 3)

@@ -414,6 +414,9 @@ CASES = [
     ("non_finite_nan", put(f"{ROT}.values[0]", float("nan")), f"{ROT}.values[0]", "got number nan"),
     ("non_finite_inf", put(f"{TRANS}.values[1]", -math.inf), f"{TRANS}.values[1]", "got number -inf"),
     ("non_finite_huge_int", put(f"{ROT}.values[2]", 10**400), f"{ROT}.values[2]", "finite number"),
+    # 1e40 is finite in float64 but inf in float32 (the format's dtype): NaN twists when posed.
+    ("rotation_value_overflows_float32", put(f"{ROT}.values[3]", 1e40), f"{ROT}.values[3]", "in [-10, 10], got 1e+40"),
+    ("rotation_value_out_of_range", put(f"{ROT}.values[0]", -10.5), f"{ROT}.values[0]", "twist share in [-10, 10]"),
     ("value_bool", put(f"{ROT}.values[1]", True), f"{ROT}.values[1]", "got boolean True"),
     ("value_string", put(f"{ROT}.values[1]", "0.5"), f"{ROT}.values[1]", "got string '0.5'"),
     (

@@ -381,3 +381,37 @@ def test_gradcheck():
     a, b = torch.randn(2, 3, 3, generator=g, **f64)
     b = torch.cat([b[:2], 3 * a[2:]])  # include a parallel pair
     assert torch.autograd.gradcheck(rot.shortest_arc, (leaf(a), leaf(b)))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("angle", [1e5, 1e20, 3e38])
+def test_huge_axis_angle_is_finite_and_exact(dtype, angle):
+    """|aa|^2 overflowed (NaN for 1e20 in float32); sin/cos reduce the angle modulo 2 pi exactly."""
+    if angle > torch.finfo(dtype).max:
+        pytest.skip("not representable")
+    theta = torch.tensor(angle, dtype=dtype)
+    c, s = math.cos(float(theta)), math.sin(float(theta))
+    for axis in range(3):
+        aa = torch.zeros(2, 3, dtype=dtype)
+        aa[0, axis], aa[1, axis] = theta, -theta
+        R = rot.axis_angle_to_matrix(aa)
+        q = rot.axis_angle_to_quat_xyzw(aa)
+        assert torch.isfinite(R).all() and torch.isfinite(q).all()
+        i, j = (axis + 1) % 3, (axis + 2) % 3  # cyclic: R[j, i] = sin
+        ref = torch.eye(3, dtype=torch.float64)
+        ref[i, i] = ref[j, j] = c
+        ref[j, i], ref[i, j] = s, -s
+        assert (R[0].double() - ref).abs().max() < TOL[dtype]
+        assert (R[1].double() - ref.T).abs().max() < TOL[dtype]
+        assert (rot.quat_xyzw_to_matrix(q).double() - R.double()).abs().max() < 10 * TOL[dtype]
+    big = torch.full((4, 3), angle, dtype=dtype) * torch.tensor([[1.0], [-1.0], [0.5], [0.25]], dtype=dtype)
+    R = rot.axis_angle_to_matrix(big)
+    assert torch.isfinite(R).all()
+    eye = torch.eye(3, dtype=dtype)
+    assert (R.transpose(-1, -2) @ R - eye).abs().max() < 10 * TOL[dtype]
+
+
+def test_huge_axis_angle_gradient_is_finite():
+    aa = torch.tensor([[1e20, -3e19, 2e19], [0.0, 0.0, 0.0], [1e-9, 0.0, 0.0]], requires_grad=True)
+    rot.axis_angle_to_matrix(aa).sum().backward()
+    assert torch.isfinite(aa.grad).all()

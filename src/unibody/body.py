@@ -35,6 +35,17 @@ if TYPE_CHECKING:
 
 __all__ = ["BodyLayer", "BodyOutput", "PreparedIdentity"]
 
+ROTATION_TOLERANCE = {torch.float64: 1e-5, torch.float32: 1e-3}
+"""Rotation-matrix poses must satisfy ``max |R^T R - I| <= tol`` and ``det R > 0``; 6D poses
+need ``sin`` of the angle between their halves ``>= tol``. float64 admits float32 data cast up
+(error ~1e-7); float32 admits matrices composed or stored in float32 (~1e-6) with room to spare,
+and 1e-3 still bounds the scale error of a skinned vertex by 1 mm per metre. Other dtypes: 1e-3."""
+R6D_MIN_NORM = 1e-6
+"""Each 3-vector half of a 6D pose needs a norm of at least this (and a finite one)."""
+REST_EXTENT_M = (0.1, 10.0)
+"""Bounding-box diagonal (m) a rest mesh must have: a newborn's is ~0.6 m and a 3 m giant's
+~4 m; below 0.1 m a mesh is collapsed or scaled down, above 10 m it is in cm or mm."""
+
 
 @dataclass(frozen=True, slots=True)
 class PreparedIdentity:
@@ -185,11 +196,46 @@ class BodyLayer(nn.Module):
         return self.pose(prepared, local, transl=prepared.rest_joints[:, 1], absolute=True).vertices
 
     def prepare_rest(self, rest_vertices: torch.Tensor) -> PreparedIdentity:
-        """Fit the skeleton to canonical rest meshes (B, V, 3), metres."""
-        rot, pos = self.skeleton(rest_vertices)
+        """Fit the skeleton to canonical rest meshes (B, V, 3), metres.
+
+        Raises:
+            TypeError: ``rest_vertices`` is not a tensor, or not of the layer's dtype and device.
+            ValueError: wrong shape, NaN/inf values, or a bounding-box diagonal outside
+                :data:`REST_EXTENT_M` (0.1 to 10 m): a collapsed mesh, or one not in metres.
+        """
+        check_shape(rest_vertices, f"B {self.num_vertices} 3", name="rest_vertices")
+        check_like(rest_vertices, self.tpose_orient, name="rest_vertices")
+        check_finite(rest_vertices, "rest_vertices")
+        if rest_vertices.shape[0]:
+            self._check_extent(rest_vertices)
+        rot, pos = self.skeleton.fit(rest_vertices)
         rp_t = rot[:, self.parents].transpose(-1, -2)
         offsets = (rp_t @ (pos - pos[:, self.parents])[..., None]).squeeze(-1)
         return PreparedIdentity(rest_vertices, rot, pos, offsets)
+
+    @staticmethod
+    def _check_extent(rest: torch.Tensor) -> None:
+        """ValueError unless every mesh's bounding-box diagonal lies in :data:`REST_EXTENT_M`."""
+        with torch.no_grad():
+            diag = torch.linalg.vector_norm(rest.amax(1) - rest.amin(1), dim=-1)
+            lo, hi = REST_EXTENT_M
+            bad = ~((diag >= lo) & (diag <= hi))
+            if not bool(bad.any()):
+                return
+            b = int(bad.nonzero()[0, 0])
+            d = float(diag[b])
+        if d == 0:
+            why = "the mesh is collapsed to a point"
+        elif d < lo:
+            why = "the mesh is collapsed or scaled down (not in metres?)"
+        elif d == float("inf"):
+            why = "its coordinates are far beyond any body (the extent overflows)"
+        else:  # a human body's diagonal is ~2 m: ~200 in centimetres, ~2000 in millimetres
+            unit = "millimetres (divide by 1000)" if d > 600 else "centimetres (divide by 100)"
+            why = f"the mesh is not in metres: in {unit}?"
+        raise ValueError(
+            f"rest_vertices: bounding-box diagonal {d:.4g} m at batch {b} is outside [{lo:g}, {hi:g}] m; {why}"
+        )
 
     def prepare_identity(self, params: torch.Tensor) -> PreparedIdentity:
         """Run the identity backend, the topology transfer and the skeleton fit once.
@@ -211,12 +257,67 @@ class BodyLayer(nn.Module):
         kind = check_shape(pose, f"B {p} 3", f"B {p} 3 3", f"B {p} 6", name="pose")
         check_like(pose, self.tpose_orient, name="pose")
         check_finite(pose, "pose")
+        if kind == 1:
+            self._check_matrices(pose)
+        elif kind == 2:
+            self._check_rot6d(pose)
         rot = (axis_angle_to_matrix, lambda r: r, rot6d_to_matrix)[kind](pose)
         if not absolute:
             o = self.tpose_orient  # R_abs,j = O_p(j)^T R_rel,j O_j
             rot = o[self.parents[1:]].transpose(-1, -2) @ rot @ o[1:]
         eye = torch.eye(3, dtype=rot.dtype, device=rot.device).expand(rot.shape[0], 1, 3, 3)
         return torch.cat([eye, rot], dim=1)
+
+    def _worst(self, bad: torch.Tensor, score: torch.Tensor) -> tuple[int, int, str]:
+        """(batch, pose index, description) of the bad entry with the largest ``score``."""
+        worst = int(torch.where(bad, score, -1.0).flatten().argmax())
+        b, j = divmod(worst, bad.shape[1])
+        return b, j, f"joint {self.joint_names[j + 1]!r} (pose index {j}, batch {b})"
+
+    def _check_matrices(self, pose: torch.Tensor) -> None:
+        """ValueError unless every (3, 3) is a rotation within :data:`ROTATION_TOLERANCE`."""
+        tol = ROTATION_TOLERANCE.get(pose.dtype, 1e-3)
+        with torch.no_grad():
+            eye = torch.eye(3, dtype=pose.dtype, device=pose.device)
+            err = (pose.transpose(-1, -2) @ pose - eye).abs().amax((-1, -2))  # (B, P)
+            c = pose.unbind(-1)
+            det = (c[0] * torch.linalg.cross(c[1], c[2], dim=-1)).sum(-1)
+            bad = ~((err <= tol) & (det > 0))
+            if not bool(bad.any()):
+                return
+            score = (err + (det <= 0)).nan_to_num(float("inf"))  # reflections rank above small errors
+            b, k, where = self._worst(bad, score)
+            e, d = float(err[b, k]), float(det[b, k])
+        if not e <= tol:  # NaN/inf when the entries overflow
+            found = f"max |R^T R - I| = {e:.3g} > {tol:g}"
+        else:
+            found = f"det = {d:.3g} (a reflection, not a rotation)"
+        raise ValueError(
+            f"pose: rotation matrix of {where} is not a rotation: {found} "
+            f"(expected orthonormal with det +1 within {tol:g} for {str(pose.dtype).removeprefix('torch.')}; "
+            "project approximate ones with unibody.geometry.rotations.orthonormalize)"
+        )
+
+    def _check_rot6d(self, pose: torch.Tensor) -> None:
+        """ValueError unless both halves of every 6D vector are non-zero and not (near-)parallel."""
+        tol = ROTATION_TOLERANCE.get(pose.dtype, 1e-3)
+        with torch.no_grad():
+            a1, a2 = pose[..., :3], pose[..., 3:]
+            n1, n2 = torch.linalg.vector_norm(a1, dim=-1), torch.linalg.vector_norm(a2, dim=-1)
+            ok_n = (n1 >= R6D_MIN_NORM) & (n2 >= R6D_MIN_NORM) & torch.isfinite(n1) & torch.isfinite(n2)
+            # |sin| of the angle between the halves, from the unit vectors (no overflow).
+            u1, u2 = a1 / n1[..., None].clamp_min(R6D_MIN_NORM), a2 / n2[..., None].clamp_min(R6D_MIN_NORM)
+            sin = torch.linalg.vector_norm(torch.linalg.cross(u1, u2, dim=-1), dim=-1)
+            bad = ~(ok_n & (sin >= tol))
+            if not bool(bad.any()):
+                return
+            b, k, where = self._worst(bad, torch.where(ok_n, 1 - sin, 2.0))  # zero/huge halves first
+            m1, m2, s, norms_ok = float(n1[b, k]), float(n2[b, k]), float(sin[b, k]), bool(ok_n[b, k])
+        if not norms_ok:
+            found = f"its 3-vectors have norms {m1:.3g} and {m2:.3g} (expected finite and >= {R6D_MIN_NORM:g})"
+        else:
+            found = f"its 3-vectors are (near-)parallel, |sin angle| = {s:.3g} < {tol:g}"
+        raise ValueError(f"pose: 6D rotation of {where} is degenerate: {found}")
 
     def pose(
         self,
@@ -237,7 +338,23 @@ class BodyLayer(nn.Module):
             absolute: whether ``pose`` holds absolute local rotations.
 
         Returns:
-            BodyOutput with B meshes.
+            BodyOutput with B meshes (B may be 0: empty outputs of the right shapes).
+
+        Validation: every entry finite. Axis-angle may have any finite magnitude (the angle is
+        reduced modulo 2 pi exactly). Matrices must be rotations: ``max |R^T R - I| <= tol``
+        and ``det R > 0``, ``tol`` from :data:`ROTATION_TOLERANCE` (1e-3 float32, 1e-5
+        float64); they are not projected (do that explicitly with
+        :func:`unibody.geometry.rotations.orthonormalize`). 6D: both 3-vectors finite with norm
+        >= :data:`R6D_MIN_NORM` and ``|sin|`` of their angle >= ``tol`` (Gram-Schmidt is then
+        well conditioned). The checks run without autograd (one batched reduction, ~2 % of a
+        B=1 pose); the outputs are checked finite too.
+
+        Raises:
+            TypeError: ``prepared`` is not a PreparedIdentity; ``pose``/``transl`` not tensors
+                of the layer's dtype and device.
+            ValueError: a wrong shape, NaN/inf, a non-rotation matrix or a degenerate 6D
+                vector (the message names the joint and the batch item), or outputs that
+                overflowed the dtype.
         """
         if not isinstance(prepared, PreparedIdentity):
             raise TypeError(f"prepared: expected a PreparedIdentity, got {type(prepared).__name__}")
@@ -253,6 +370,15 @@ class BodyLayer(nn.Module):
         else:
             transl = local_r.new_zeros(b, 3)
         g_rot, g_pos, vertices = self.skin_local(prepared, local_r, transl)
+        # Final guard (checked inputs cannot overflow, but transl or a hand-built prepared
+        # identity of huge magnitude can): one sum, ~1-2 % of a B=1 pose on one core.
+        with torch.no_grad():
+            total = vertices.sum() + g_pos.sum()
+            if not bool(torch.isfinite(total)) and not (torch.isfinite(vertices).all() and torch.isfinite(g_pos).all()):
+                raise ValueError(
+                    "pose: posing gave non-finite vertices or joints (the floating-point range overflowed); "
+                    "check the magnitudes of transl and of the prepared identity"
+                )
         bottom = g_rot.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(b, self.num_joints, 1, 4)
         transforms = torch.cat([torch.cat([g_rot, g_pos[..., None]], dim=-1), bottom], dim=-2)
         return BodyOutput(vertices, g_pos, transforms, prepared.rest_vertices.expand(b, -1, -1))

@@ -30,25 +30,30 @@ __all__ = [
 ]  # fmt: skip
 
 
-def _safe_norm(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _safe_norm(v: torch.Tensor, robust: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Return ``(t, t2, small)`` for ``t = |v|`` over the last dim.
 
     ``t`` is replaced by 1 where ``small`` so sqrt and divisions by ``t`` have a
     finite gradient; ``t2`` is zeroed where not small so polynomials in it cannot
     overflow. Callers must select the Taylor branch with ``small``.
+
+    With ``robust``, ``t`` stays finite (and correct) for every finite ``v``: where
+    ``|v|^2`` overflows (``|v| > sqrt(float max)``, 1.8e19 in float32) the norm is
+    recomputed from ``v`` scaled by its largest component.
     """
     sq = (v * v).sum(-1)
     # Below t^2 = eps^(1/3) direct formulas lose ~eps/t^2 relative accuracy in their
     # derivatives, while the Taylor remainders (O(t^6)) stay below eps.
     small = sq < torch.finfo(v.dtype).eps ** (1.0 / 3.0)
     t = torch.sqrt(torch.where(small, torch.ones_like(sq), sq))
+    if robust:
+        huge = torch.isinf(sq)
+        m = torch.where(huge, v.abs().amax(-1), torch.ones_like(sq))  # 1 where unused: no 0/0
+        scaled = v / m[..., None]
+        # sqrt of a safe argument: 1 where unused, so a zero v keeps a finite gradient.
+        ssq = torch.where(huge, (scaled * scaled).sum(-1), torch.ones_like(sq))
+        t = torch.where(huge, m * torch.sqrt(ssq), t)
     return t, torch.where(small, sq, torch.zeros_like(sq)), small
-
-
-def _sinc(t: torch.Tensor, t2: torch.Tensor, small: torch.Tensor, c: float = 1.0) -> torch.Tensor:
-    """``sin(c t) / (c t)`` with a Taylor branch in ``t2`` where ``small``."""
-    x = c * c * t2
-    return torch.where(small, 1 - x / 6 + x * x / 120, torch.sin(c * t) / (c * t))
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:
@@ -59,7 +64,13 @@ def _skew(v: torch.Tensor) -> torch.Tensor:
 
 
 def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
-    """Rodrigues' formula ``R = I + A K + B K^2`` with ``K = [aa]_x``.
+    """Rodrigues' formula ``R = I + sin(t) U + (1 - cos t) U^2`` with ``U = [aa / t]_x``.
+
+    Finite and correct for every finite input, however large: the axis is normalised
+    before it is squared (no ``|aa|^2`` overflow), ``|aa|`` itself is computed without
+    overflow, and ``sin``/``cos`` reduce the angle modulo 2 pi exactly (e.g. an angle of
+    1e20 rad gives the rotation by ``1e20 mod 2 pi``). Near 0 the Taylor form
+    ``I + a K + b K^2`` with ``K = [aa]_x`` is used instead (``U = K`` there, ``t := 1``).
 
     Args:
         aa: Axis-angle vectors, shape ``(..., 3)``.
@@ -67,13 +78,16 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     Returns:
         Rotation matrices, shape ``(..., 3, 3)``.
     """
-    t, t2, small = _safe_norm(aa)
-    a = _sinc(t, t2, small)
-    # (1 - cos t) / t^2 written as sinc(t/2)^2 / 2: no cancellation for small t.
-    b = 0.5 * _sinc(t, t2, small, 0.5) ** 2
-    K = _skew(aa)
+    t, t2, small = _safe_norm(aa, robust=True)
+    x = t2 / 4
+    # Near 0: a = sinc(t), b = (1 - cos t) / t^2 = sinc(t/2)^2 / 2 (Taylor, on K itself).
+    # Elsewhere: sin t and 1 - cos t = 2 sin^2(t/2) (no cancellation), on the unit axis.
+    a = torch.where(small, 1 - t2 / 6 + t2 * t2 / 120, torch.sin(t))
+    half = torch.where(small, 1 - x / 6 + x * x / 120, torch.sin(t / 2))
+    b = torch.where(small, 0.5, 2.0) * half * half
+    U = _skew(aa / t[..., None])
     eye = torch.eye(3, dtype=aa.dtype, device=aa.device)
-    return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
+    return eye + a[..., None, None] * U + b[..., None, None] * (U @ U)
 
 
 def matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
@@ -100,10 +114,12 @@ def axis_angle_to_quat_xyzw(aa: torch.Tensor) -> torch.Tensor:
     Returns:
         Quaternions xyzw, shape ``(..., 4)``.
     """
-    t, t2, small = _safe_norm(aa)
+    t, t2, small = _safe_norm(aa, robust=True)  # finite for any finite aa
     x = t2 / 4
     w = torch.where(small, 1 - x / 2 + x * x / 24, torch.cos(t / 2))
-    return torch.cat([aa * (0.5 * _sinc(t, t2, small, 0.5))[..., None], w[..., None]], -1)
+    # sin(t/2) on the unit axis (t := 1 near 0, where the Taylor sinc(t/2) / 2 applies).
+    s = torch.where(small, 0.5 * (1 - x / 6 + x * x / 120), torch.sin(t / 2))
+    return torch.cat([(aa / t[..., None]) * s[..., None], w[..., None]], -1)
 
 
 def quat_xyzw_to_axis_angle(q: torch.Tensor) -> torch.Tensor:

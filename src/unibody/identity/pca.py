@@ -58,6 +58,22 @@ FORMAT_VERSION = 1
 ASSET_NAME = "pca_v1.npz"
 _KEYS = ("format_version", "mean", "components", "components_lo", "std", "metadata")
 _EIG_RTOL = 1e-13  # ipca_update drops directions whose eigenvalue is below this fraction of the largest
+COEFF_BOUND = 10.0
+"""Coefficient k may move the mesh by at most 10 standard deviations of the leading component:
+``|c_k| sigma_k <= 10 sigma_0``, i.e. ``|c_k| <= 10 sigma_0 / sigma_k`` (:attr:`PCAIdentity.param_bounds`;
+10 for ``pc000``, ~280 for ``pc001``, ~3.8e4 for ``pc127`` of the shipped basis, where 10 sigma_0 is
+a mesh-norm displacement of 442 m, 3.3 m RMS per vertex).
+
+Why: the shipped basis is fit to Anny identities with phenotypes uniform in [0, 1] and sparse
+local changes; random ones of that distribution stay within 4.7 sigma on every component and
+the 64 corners of the phenotype cube (the most extreme bodies Anny makes) within 7.8 sigma
+(measured on the shipped basis), so 10 sigma of the leading component holds every trained body
+with 28 % headroom. A bound of 10 sigma on *every* component would be far tighter in metres on
+the small ones (0.1 m mesh norm for pc127) and would refuse the projection of ordinary meshes
+outside the span (a body scaled by 1.1 projects to 18 sigma on pc001). As a displacement bound it
+is kept by :meth:`PCAIdentity.project` of any mesh whose deviation from the mean is below 10
+sigma_0 in mesh norm (orthonormal basis: ``|c_k| sigma_k <= |x - mean|``), while 1e30 sigma (a
+3e29 m body) is refused."""
 
 
 def default_asset_path() -> Path:
@@ -181,7 +197,9 @@ class PCAIdentity(nn.Module):
     The module's dtype is that of ``mean``. Build it in the dtype you need
     (``from_asset(dtype=torch.float64)``): after ``.double()`` on a float32 module the basis
     keeps its float32 rounding, orthonormal to ~1e-7 only. Coefficients are in standard
-    deviations: ``c_k = 1`` moves one std along ``u_k``.
+    deviations: ``c_k = 1`` moves one std along ``u_k``; each must lie in
+    :attr:`param_bounds`, ``|c_k| <= 10 sigma_0 / sigma_k`` (:data:`COEFF_BOUND`; the
+    training distribution's extremes reach 7.8 sigma).
     """
 
     name = "pca"
@@ -214,6 +232,8 @@ class PCAIdentity(nn.Module):
         self.metadata: dict = dict(metadata or {})
         self.num_vertices = int(mean.shape[0])
         self.param_names: tuple[str, ...] = tuple(f"pc{k:03d}" for k in range(components.shape[0]))
+        bound = COEFF_BOUND * std.max() / std  # std[0] is the largest in the shipped asset
+        self.register_buffer("param_bound", bound.to(dtype), persistent=False)
 
     @classmethod
     def from_asset(
@@ -251,6 +271,12 @@ class PCAIdentity(nn.Module):
         )
 
     @property
+    def param_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(lo, hi)``, each (K,): inclusive bounds of the coefficients in standard deviations,
+        ``hi = -lo = 10 sigma_max / sigma_k`` (:data:`COEFF_BOUND`)."""
+        return -self.param_bound, self.param_bound
+
+    @property
     def num_params(self) -> int:
         """K, the number of coefficients."""
         return self.basis.shape[0]
@@ -269,14 +295,30 @@ class PCAIdentity(nn.Module):
         """Rest meshes.
 
         Args:
-            coeffs: (B, K) coefficients in standard deviations.
+            coeffs: (B, K) coefficients in standard deviations, within :attr:`param_bounds`.
 
         Returns:
             (B, V, 3) m, rest meshes on the canonical topology, bind A-pose, Y up, facing +Z.
+
+        Raises:
+            TypeError: ``coeffs`` is not a tensor of the module's dtype and device.
+            ValueError: a wrong shape, NaN/inf, or a coefficient outside :attr:`param_bounds`;
+                messages start with ``identity params:``.
         """
-        check_shape(coeffs, f"B {self.num_params}", name="coeffs")
-        check_like(coeffs, self.mean, name="coeffs", owner="the PCA backend")
-        check_finite(coeffs, "coeffs")
+        name = "identity params"
+        check_shape(coeffs, f"B {self.num_params}", name=name)
+        check_like(coeffs, self.mean, name=name, owner="the PCA backend")
+        check_finite(coeffs, name)
+        with torch.no_grad():
+            out = ~(coeffs.abs() <= self.param_bound)
+            if bool(out.any()):
+                b, k = (int(i) for i in out.nonzero()[0])
+                hi = float(self.param_bound[k])
+                raise ValueError(
+                    f"{name}: coefficient {self.param_names[k]} = {float(coeffs[b, k]):.4g} at batch {b} is "
+                    f"outside [{-hi:.4g}, {hi:.4g}] standard deviations (PCAIdentity.param_bounds: at most "
+                    f"{COEFF_BOUND:g} sigma of the leading component; trained bodies reach 7.8 sigma)"
+                )
         flat = torch.addmm(self.mean.reshape(1, -1), coeffs * self.std, self.basis)
         return flat.view(coeffs.shape[0], self.num_vertices, 3)
 

@@ -65,6 +65,11 @@ CHANNEL_REFERENCE = "bind"
 SUPPORTED_MAJOR = 1
 MATRIX_NAMES = ("rotation", "translation")
 TRANSLATION_TOLERANCE = 1e-5
+ROTATION_VALUE_LIMIT = 10.0
+"""Bound on ``|value|`` of a rotation-matrix entry: the share of its driver's twist a twist joint
+takes (the shipped sidecar uses 1/3 to 1). Ten times the driver's twist is no twist distribution;
+the bound also keeps every value finite in float32 (the format's dtype: 1e40 would be inf) and
+every twist angle below 10 pi, so posing stays finite in either dtype."""
 
 CONVENTIONS = {
     "units": "meters",
@@ -688,8 +693,13 @@ def _missing_rows(m: ParameterMatrix, owner: dict[str, Segment]) -> None:
 
 
 def _rotation(m: ParameterMatrix, owner: dict[str, Segment]) -> ParameterMatrix:
-    """Every twist joint has entries, all in its segment's driver column."""
-    for i, (row, column) in enumerate(zip(m.rows, m.columns, strict=True)):
+    """Every twist joint has entries, all in its segment's driver column, within the value limit."""
+    for i, (row, column, value) in enumerate(zip(m.rows, m.columns, m.values, strict=True)):
+        if not abs(value) <= ROTATION_VALUE_LIMIT:
+            raise ProceduralFormatError(
+                f"parameter_matrices.rotation.values[{i}]",
+                f"expected a twist share in [-{ROTATION_VALUE_LIMIT:g}, {ROTATION_VALUE_LIMIT:g}], got {value!r}",
+            )
         segment = owner[row]
         if column != segment.driver:
             raise ProceduralFormatError(

@@ -21,7 +21,7 @@ from ..geometry.skinning import lbs_sparse, register_skin_layout, registered_ski
 from ..rig import Rig
 from .expand import expand_rig, segment_alignment, translation_matrix
 from .extract import twist_channel
-from .format import AXES, ProceduralDefinition, load
+from .format import AXES, ROTATION_VALUE_LIMIT, ProceduralDefinition, ProceduralFormatError, load
 
 __all__ = ["ProceduralTwist", "canonical_definition"]
 
@@ -63,6 +63,12 @@ class ProceduralTwist(nn.Module):
         self.register_buffer("_trans", translation_matrix(definition), persistent=False)
         self.register_buffer("_parents", torch.tensor([max(p, 0) for p in rig.tree.parents]), persistent=False)
         m = definition.rotation
+        for i, v in enumerate(m.values):  # a definition built by hand skips parse()
+            if not abs(v) <= ROTATION_VALUE_LIMIT:
+                raise ProceduralFormatError(
+                    f"parameter_matrices.rotation.values[{i}]",
+                    f"expected a twist share in [-{ROTATION_VALUE_LIMIT:g}, {ROTATION_VALUE_LIMIT:g}], got {v!r}",
+                )
         self.modes = tuple(sorted({definition.rotation_extraction.mode_of(r) for r in m.rows}))
         for mode in self.modes:
             sel = [i for i, r in enumerate(m.rows) if definition.rotation_extraction.mode_of(r) == mode]
