@@ -10,8 +10,10 @@ the held-out sets of benchmarks/panoman.py use other seeds (dataset seed 1 and u
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
+import pickle
 import sys
 import time
 from pathlib import Path
@@ -19,11 +21,12 @@ from pathlib import Path
 import torch
 
 from unibody.identity.pca import PCAIdentity
+from unibody.io.atomic import atomic_path
 from unibody.panoman import dataset
 from unibody.panoman.body_fit import sparse_joint_regressor
 from unibody.panoman.build import decompose, edge_graph, rla_matrix, train_beta_net, train_correction
 from unibody.panoman.mesh import EdgeTopology
-from unibody.panoman.model import SUBSETS, PanoMan, default_model_path
+from unibody.panoman.model import SUBSETS, Decomposition, PanoMan, default_model_path
 from unibody.panoman.nets import MLP, CorrectionNet
 from unibody.panoman.splocs import SplocsConfig
 from unibody.rig import Rig
@@ -34,14 +37,28 @@ def log(msg: str) -> None:
 
 
 def cached(path: Path, make):
+    """``make()``, or the value a previous run saved at ``path``.
+
+    Values are tensors and plain data, read back with ``torch.load(weights_only=True)``; a file
+    that does not load so (an older cache holding objects, a truncated file) is rebuilt. The
+    file is written atomically (unique exclusive temporary file, fsync, rename).
+    """
     if path.exists():
-        log(f"resume: {path}")
-        return torch.load(path, weights_only=False)
+        try:
+            value = torch.load(path, map_location="cpu", weights_only=True)
+        except (pickle.UnpicklingError, RuntimeError, EOFError) as e:
+            log(f"rebuild: {path} does not load as plain data ({type(e).__name__})")
+        else:
+            log(f"resume: {path}")
+            return value
     value = make()
-    tmp = path.with_suffix(".tmp")
-    torch.save(value, tmp)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        torch.save(value, tmp)
     return value
+
+
+def _fields(dec: Decomposition) -> dict:
+    return {f.name: getattr(dec, f.name) for f in dataclasses.fields(dec)}
 
 
 def main(argv=None) -> None:
@@ -94,9 +111,9 @@ def main(argv=None) -> None:
                     f"{q}/{subset}: {dec.num_components} components, support median {sizes.median():.0f} "
                     f"max {sizes.max():.0f} edges of {topo.num_edges}"
                 )
-                return dec
+                return _fields(dec)  # plain data, loadable with weights_only=True
 
-            decs.append(cached(args.work / f"dec_{q}_{subset}.pt", make))
+            decs.append(Decomposition(**cached(args.work / f"dec_{q}_{subset}.pt", make)))
 
     model = PanoMan(decs)
     sl = model.beta_slices()
@@ -165,7 +182,8 @@ def main(argv=None) -> None:
         decs, beta_net=beta_net, correction=correction, joint_regressor=joint_regressor, metadata={"recipe": recipe}
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    final.save(args.out)
+    with atomic_path(args.out) as tmp:
+        final.save(tmp)
     log(f"wrote {args.out} ({args.out.stat().st_size / 1e6:.1f} MB): {json.dumps(recipe)}")
 
 

@@ -26,8 +26,9 @@ from pathlib import Path
 
 import torch
 
+from unibody.io.atomic import atomic_path
 from unibody.occupancy.model import default_weights_path
-from unibody.occupancy.train import TrainConfig, train
+from unibody.occupancy.train import TrainConfig, read_checkpoint, train
 
 
 def main(argv=None) -> None:
@@ -49,18 +50,17 @@ def main(argv=None) -> None:
         print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
     net = train(args.checkpoint, cfg, net_config, log=log)
-    history = torch.load(args.checkpoint, weights_only=False)["history"]
+    history = read_checkpoint(args.checkpoint)["history"]  # torch.load(weights_only=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(
-        {
-            "config": net.config,
-            "model": net.state_dict(),
-            "command": "OMP_NUM_THREADS=1 python scripts/train_occupancy.py " + shlex.join(cli),
-            "train": dataclasses.asdict(cfg),
-            "history": history,
-        },
-        args.out,
-    )
+    state = {
+        "config": net.config,
+        "model": net.state_dict(),
+        "command": "OMP_NUM_THREADS=1 python scripts/train_occupancy.py " + shlex.join(cli),
+        "train": dataclasses.asdict(cfg),
+        "history": history,
+    }
+    with atomic_path(args.out) as tmp:  # unique exclusive temporary file, fsync, rename
+        torch.save(state, tmp)
     log(f"wrote {args.out}")
 
 

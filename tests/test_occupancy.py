@@ -256,3 +256,46 @@ def test_shipped_file_records_its_command():
     state = torch.load(default_weights_path(), weights_only=True)
     assert state["command"].startswith("OMP_NUM_THREADS=1 python scripts/train_occupancy.py")
     assert state["train"]["seed"] == 0
+
+
+class _RunsCode:
+    """Pickles as a call of ``os.system``: a checkpoint that runs a command when unpickled unsafely."""
+
+    def __init__(self, command: str) -> None:
+        self.command = command
+
+    def __reduce__(self):
+        import os
+
+        return os.system, (self.command,)
+
+
+def test_resume_refuses_a_checkpoint_that_would_run_code(tmp_path):
+    marker = tmp_path / "pwned"
+    path = tmp_path / "ckpt.pt"
+    cfg = TrainConfig(steps=2, bodies=1, per_part=16, identities=4)
+    torch.save({"model": _RunsCode(f"touch {marker}"), "optimizer": {}, "step": 0, "history": [],
+                "train": {}, "net": {}}, path)  # fmt: skip
+    with pytest.raises(ValueError, match=r"ckpt\.pt: not a training checkpoint that loads as plain data.*system"):
+        train(path, cfg, {}, log=lambda _: None)
+    assert not marker.exists()
+    path.write_bytes(path.read_bytes()[:100])  # a truncated checkpoint: the same clear error
+    with pytest.raises(ValueError, match=r"ckpt\.pt: not a training checkpoint"):
+        train(path, cfg, {}, log=lambda _: None)
+    torch.save({"model": {}, "step": "2"}, path)
+    with pytest.raises(ValueError, match=r"ckpt\.pt: checkpoint entry 'optimizer': expected dict, got nothing"):
+        train(path, cfg, {}, log=lambda _: None)
+
+
+def test_checkpoint_saves_never_follow_a_planted_link(tmp_path):
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    path = tmp_path / "ckpt.pt"
+    (tmp_path / "ckpt.tmp").symlink_to(victim)  # the temporary name the trainer used to write through
+    cfg = TrainConfig(steps=1, bodies=1, per_part=16, identities=4, eval_every=1000, eval_bodies=1, save_every=1)
+    train(path, cfg, {"width": 16, "depth": 2, "samples": 8, "encoder_width": 8, "code": 8}, log=lambda _: None)
+    assert victim.read_text() == "precious"
+    assert (tmp_path / "ckpt.tmp").is_symlink() and not path.is_symlink()
+    ckpt = torch.load(path, weights_only=True)  # the checkpoint is plain data
+    assert ckpt["step"] == 1 and isinstance(ckpt["history"], list)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt", "ckpt.tmp", "victim.txt"]  # no temporary left

@@ -11,6 +11,7 @@ seen; batches are drawn by one background worker while the main process trains.
 from __future__ import annotations
 
 import math
+import pickle
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
@@ -19,12 +20,13 @@ from pathlib import Path
 import torch
 from torch.nn.functional import binary_cross_entropy_with_logits
 
+from ..io.atomic import atomic_path
 from ..rig import Rig
 from . import data
 from .model import OUTSIDE, OccupancyNet
 from .parts import BodyParts
 
-__all__ = ["TrainConfig", "make_net", "iou", "evaluate", "train"]
+__all__ = ["TrainConfig", "make_net", "iou", "evaluate", "read_checkpoint", "train"]
 
 
 @dataclass(frozen=True)
@@ -93,13 +95,51 @@ def _index(enc, i: int):
     return type(enc)(*(getattr(enc, f)[i : i + 1] for f in enc.__slots__))
 
 
+_CHECKPOINT_KEYS = {"model": dict, "optimizer": dict, "step": int, "history": list, "train": dict, "net": dict}
+
+
+def read_checkpoint(path: Path) -> dict:
+    """Load a training checkpoint with ``torch.load(weights_only=True)``: tensors and plain data only.
+
+    Raises:
+        ValueError: ``path`` is not such a checkpoint (a pickle that names other globals, as a
+            crafted file that would run code does, a truncated file, or missing entries).
+    """
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, TypeError, AttributeError) as e:
+        lines = [line.strip() for line in str(e).splitlines() if line.strip()] or [type(e).__name__]
+        boilerplate = ("Weights only load failed", "Check the documentation", "Please file an issue")
+        reason = next((line for line in lines if not line.startswith(boilerplate)), lines[0])[:200]
+        raise ValueError(
+            f"{path}: not a training checkpoint that loads as plain data (tensors, numbers, strings, "
+            f"lists and dicts): {reason}"
+        ) from None
+    if not isinstance(ckpt, dict):
+        raise ValueError(f"{path}: expected a checkpoint dict, got {type(ckpt).__name__}")
+    for key, kind in _CHECKPOINT_KEYS.items():
+        if not isinstance(ckpt.get(key), kind) or isinstance(ckpt.get(key), bool):
+            got = type(ckpt[key]).__name__ if key in ckpt else "nothing"
+            raise ValueError(f"{path}: checkpoint entry {key!r}: expected {kind.__name__}, got {got}")
+    return ckpt
+
+
 def train(path: Path, cfg: TrainConfig, net_config: dict | None = None, log=print) -> OccupancyNet:
-    """Train (or resume from ``path``) and save a checkpoint every ``cfg.save_every`` steps."""
+    """Train (or resume from ``path``) and save a checkpoint every ``cfg.save_every`` steps.
+
+    The checkpoint holds tensors and plain data only (it is read back with
+    ``torch.load(weights_only=True)``) and is replaced atomically: written to a fresh,
+    exclusively created temporary file beside it, synced, then renamed over it.
+
+    Raises:
+        ValueError: ``path`` exists but is not a checkpoint of this run's configuration, or
+            cannot be loaded as plain data (see :func:`read_checkpoint`).
+    """
     path = Path(path)
     net_config = dict(net_config or {})
     start, history = 0, []
     if path.exists():
-        ckpt = torch.load(path, weights_only=False)
+        ckpt = read_checkpoint(path)
         saved = {**asdict(TrainConfig()), **ckpt["train"]}  # options added since the file was written: defaults
         if saved != asdict(cfg) or ckpt["net"] != net_config:
             raise ValueError(f"{path}: its configuration differs from this run's; use another path")
@@ -117,9 +157,8 @@ def train(path: Path, cfg: TrainConfig, net_config: dict | None = None, log=prin
     def save(step: int) -> None:
         state = {"model": net.state_dict(), "optimizer": opt.state_dict(), "step": step, "history": history,
                  "train": asdict(cfg), "net": net_config}  # fmt: skip
-        tmp = path.with_suffix(".tmp")
-        torch.save(state, tmp)
-        tmp.replace(path)
+        with atomic_path(path) as tmp:  # a unique temporary file: a link planted beside path is never followed
+            torch.save(state, tmp)
 
     loader = torch.utils.data.DataLoader(
         _Batches(net.parts, cfg, start), batch_size=None, num_workers=1, prefetch_factor=4
