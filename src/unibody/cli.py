@@ -362,8 +362,10 @@ def run_mocap_label(
             labelled = label_sequence(
                 seq, labeler, up=up, tracklets=tracklets, body=layout, progress=lambda line: _progress("  " + line)
             )
-        except ValueError as err:
-            raise InputError(f"{src}: {err}") from None
+        except ValueError as err:  # about an option (--body, --up) or about the file's data
+            if str(err).split(":")[0] in ("body", "up"):
+                raise UsageError(f"--{err}") from None
+            raise InputError(_naming(src, err)) from None
         dt = time.perf_counter() - t
         (write_c3d if out.suffix.lower() == ".c3d" else write_npz)(out, labelled)
     found = int(labelled.visible[:, : labeler.num_labels].sum())
