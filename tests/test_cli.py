@@ -331,3 +331,19 @@ def test_broken_partial_file_starts_over(tmp_path, capsys, content):
     assert code == 0, err
     assert "warning: starting over" in err and "wrote" in stdout and not partial.exists()
     assert load_motion(out).pose.shape == (3, 77, 3)
+
+
+def test_demo_backend_files_are_named(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("UNIBODY_SMPL_FILE", raising=False)
+    bad = tmp_path / "bad.pkl"
+    bad.write_bytes(b"garbage")
+    for spec, code, needle in [
+        (f"smpl={bad}", 3, "bad.pkl: not a loadable pickle"),
+        (f"smpl={tmp_path / 'none.pkl'}", 3, "none.pkl: no such file"),
+        ("smpl", 2, "--backends: smpl needs its model files"),
+        (f"mhr={tmp_path}", 3, "rig.npz is missing"),
+    ]:
+        got, _, err = _run(capsys, "demo", "--backends", spec, "--out", tmp_path / "d")
+        assert got == code, err
+        _one_line_error(err, needle)
+    assert not (tmp_path / "d").exists()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import pickle
 import sys
 import time
@@ -49,8 +50,13 @@ def _read(path: Path, loader: Callable[..., T], *args, **kwargs) -> T:
     """``loader(path, ...)`` with every failure turned into one InputError line naming ``path``."""
     try:
         return loader(path, *args, **kwargs)
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
+    except FileNotFoundError as exc:
+        if exc.filename is None:  # the library's own message names the file and how to get it
+            raise InputError(_naming(path, exc)) from None
+        missing = exc.filename
+        raise InputError(
+            f"{path}: no such file" if str(missing) == str(path) else f"{path}: {missing} is missing"
+        ) from None
     except (ValueError, TypeError, KeyError, EOFError, OSError, pickle.UnpicklingError, zipfile.BadZipFile) as exc:
         raise InputError(_naming(path, exc)) from exc
 
@@ -113,7 +119,7 @@ def demo_pose(dtype: torch.dtype = torch.float32) -> torch.Tensor:
 def demo_layers(backends: list[str]) -> list[tuple[str, object, torch.Tensor]]:
     """``(label, layer, identity params)`` per backend: ``name`` or ``name=PATH`` (user files)."""
     from .body import BodyLayer
-    from .identity import BACKENDS, create
+    from .identity import BACKENDS, ENV_VARS, create
 
     out = []
     gen = torch.Generator().manual_seed(0)
@@ -130,7 +136,10 @@ def demo_layers(backends: list[str]) -> list[tuple[str, object, torch.Tensor]]:
             params = torch.zeros(2, layer.identity.num_params)
             params[:, 1:8] = torch.randn(2, 7, generator=gen)  # the first component is size: keep adults
         else:
-            layer = BodyLayer.from_identity(create(name, path=path or None))
+            src = path or os.environ.get(ENV_VARS[name], "")
+            if not src:
+                raise UsageError(f"--backends: {name} needs its model files: {name}=PATH (or set {ENV_VARS[name]})")
+            layer = BodyLayer.from_identity(_read(Path(src), lambda p, n=name: create(n, path=p)))
             params = layer.identity.default_params(2)
             params[1:, : min(10, params.shape[1])] = 1.5 * torch.randn(1, min(10, params.shape[1]), generator=gen)
         out.append((name, layer, params))
