@@ -283,3 +283,101 @@ def test_quads_and_triangles_agree_on_units_of_faces(anny):
     b = as_triangles([list(q) for q in quads], 13718)
     c = as_triangles(torch.from_numpy(quads), 13718)
     assert torch.equal(a, b) and torch.equal(a, c) and torch.equal(a, quads_to_triangles(quads))
+
+
+def _fake_registration(num_source: int, seed: int = 0):
+    """A Registration-shaped object on the canonical vertex count, with valid random arrays."""
+    from types import SimpleNamespace
+
+    from unibody.registration._normalize import Normalization
+
+    rng = np.random.default_rng(seed)
+    n = _cache._CANONICAL_VERTICES
+    w = rng.random((n, 4))
+    return SimpleNamespace(
+        correspondence=SimpleNamespace(
+            face_vertices=torch.from_numpy(rng.integers(0, num_source, (n, 3))),
+            weights=torch.from_numpy(w / w.sum(1, keepdims=True)),
+        ),
+        wrap=torch.from_numpy(rng.normal(size=(n, 3))),
+        normalization=Normalization("cm", 0.01, torch.eye(3, dtype=F64), torch.zeros(3, dtype=F64)),
+    )
+
+
+def _resign(path, change):
+    """Rewrite an entry with ``change`` applied to its arrays and a matching checksum."""
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files if k != "_sha256"}
+    change(arrays)
+    with open(path, "wb") as f:
+        np.savez(f, **arrays, _sha256=np.str_(assets.array_checksum(arrays)))
+
+
+def _nan_weight(a):
+    a["weights"][3, 1] = np.nan
+
+
+def _bad_index(a):
+    a["face_vertices"][10, 2] = 10**9
+
+
+def _rescale(path):
+    """Change the scale and keep the stored checksum: a valid zip with altered contents."""
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["scale"] = np.float64(1.0)
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+
+
+def _flip(path):
+    b = bytearray(path.read_bytes())
+    b[len(b) // 2] ^= 0x01
+    path.write_bytes(bytes(b))
+
+
+REGISTRATION_CORRUPTIONS = {
+    "truncated": (lambda p: p.write_bytes(p.read_bytes()[:1000]), "unreadable"),
+    "empty": (lambda p: p.write_bytes(b""), "unreadable"),
+    "flipped byte": (_flip, "unreadable: BadZipFile"),
+    "NaN weight": (lambda p: _resign(p, _nan_weight), "weights: non-finite"),
+    "index out of range": (lambda p: _resign(p, _bad_index), "face_vertices: index out of range"),
+    "wrong keys": (lambda p: _resign(p, lambda a: a.pop("wrap")), r"missing \['wrap'\]"),
+    "other version": (lambda p: _resign(p, lambda a: a.update(version=np.int64(99))), "version: 99"),
+    "altered, old checksum": (_rescale, "checksum mismatch"),
+    "folder": (lambda p: (p.unlink(), p.mkdir()), "a folder is in its place"),
+}
+
+
+@pytest.mark.parametrize("name", list(REGISTRATION_CORRUPTIONS))
+def test_a_corrupt_registration_entry_is_rebuilt_with_a_warning(tmp_path, monkeypatch, name):
+    v, f = icosahedron()
+    monkeypatch.setenv("UNIBODY_CACHE_DIR", str(tmp_path))
+    calls = []
+
+    def fake_register(vertices, faces, *, config=None):
+        calls.append(config)
+        return _fake_registration(len(v))
+
+    monkeypatch.setattr(_cache._register, "register", fake_register)
+    first = topology_transfer(v, f, "ico")
+    (path,) = (tmp_path / "v1" / "registration").iterdir()
+    corrupt, message = REGISTRATION_CORRUPTIONS[name]
+    corrupt(path)
+    with pytest.warns(assets.AssetWarning, match=f"registration.*unusable \\(.*{message}"):
+        again = topology_transfer(v, f, "ico")
+    assert len(calls) == 2
+    assert torch.equal(again.face_vertices, first.face_vertices) and torch.equal(again.weights, first.weights)
+    assert [p.name for p in path.parent.iterdir()] == [path.name]  # rewritten, no temporary or lock file
+    topology_transfer(v, f, "ico")
+    assert len(calls) == 2  # served from the repaired entry
+
+
+def test_an_unwritable_registration_cache_registers_in_memory(tmp_path, monkeypatch):
+    v, f = icosahedron()
+    (tmp_path / "a-file").write_text("")
+    monkeypatch.setenv("UNIBODY_CACHE_DIR", str(tmp_path / "a-file"))
+    monkeypatch.setattr(_cache._register, "register", lambda *a, **k: _fake_registration(len(v)))
+    with pytest.warns(assets.AssetWarning, match="cannot write the cache in .*registration.*building in memory"):
+        transfer = topology_transfer(v, f, "ico")
+    assert torch.equal(transfer.face_vertices, _fake_registration(len(v)).correspondence.face_vertices)

@@ -3,16 +3,17 @@
 The key is the sha256 of the source's float64 vertices, its triangulated int64 faces,
 the registration algorithm version and the configuration, so any change to one of them
 makes a new entry. Entries live under ``unibody.assets.cache_dir() / "registration"`` as
-``<key>.npz`` (``face_vertices``, ``weights``, ``wrap``, the normalisation), written to a
-temporary file and renamed into place (atomic); an unreadable or inconsistent entry is
-logged and rebuilt.
+``<key>.npz`` (``face_vertices``, ``weights``, ``wrap``, the normalisation, and the sha256
+of these arrays), written atomically under a lock (a second process waits for the first
+and reads its entry). An entry is verified on load (checksum, keys, dtypes, shapes, index
+ranges, finite values, weights summing to 1); an unusable one is rebuilt with an
+:class:`~unibody.assets.AssetWarning`, and an unwritable cache folder means registering in
+memory (one warning).
 """
 
 from __future__ import annotations
 
 import hashlib
-import logging
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -24,13 +25,13 @@ from . import _register
 from ._mesh import as_triangles, as_vertices
 from ._register import RegistrationConfig
 
-logger = logging.getLogger(__name__)
-
 __all__ = ["REGISTRATION_VERSION", "cache_key", "cache_path", "topology_transfer"]
 
 # Bump whenever the algorithm's output changes: old cache entries are then ignored.
 REGISTRATION_VERSION = 1
 _CANONICAL_VERTICES = 18056
+_KEYS = frozenset(("version", "face_vertices", "weights", "wrap", "unit", "scale", "rotation", "translation"))
+_UNITS = ("m", "cm", "mm", "in")
 
 
 def cache_key(vertices: torch.Tensor, faces: torch.Tensor, config: RegistrationConfig) -> str:
@@ -49,45 +50,42 @@ def cache_path(key: str) -> Path:
     return cache_dir() / "registration" / f"{key}.npz"
 
 
-def _load(path: Path, num_source_vertices: int) -> tuple[np.ndarray, np.ndarray] | None:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            fv, w = data["face_vertices"], data["weights"]
-            version = int(data["version"])
-    except (OSError, ValueError, KeyError) as exc:
-        logger.warning("rebuilding unreadable registration cache %s (%s)", path, exc)
-        return None
-    ok = (
-        version == REGISTRATION_VERSION
-        and fv.shape == (_CANONICAL_VERTICES, 3)
-        and w.shape == (_CANONICAL_VERTICES, 4)
-        and np.issubdtype(fv.dtype, np.integer)
-        and fv.min() >= 0
-        and fv.max() < num_source_vertices
-        and np.isfinite(w).all()
-    )
-    if not ok:
-        logger.warning("rebuilding inconsistent registration cache %s", path)
-        return None
-    return fv.astype(np.int64), w.astype(np.float64)
+def _checker(num_source_vertices: int):
+    """A check of an entry's arrays for a source of ``num_source_vertices`` vertices (raises ValueError)."""
+    from ..assets import _check_keys, _expect, _in_range, _orthonormal
+
+    def check(a: dict[str, np.ndarray]) -> None:
+        _check_keys(a, _KEYS)
+        version = _expect(a, "version", "i", ())
+        if int(version) != REGISTRATION_VERSION:
+            raise ValueError(f"version: {int(version)}, expected {REGISTRATION_VERSION}")
+        n = _CANONICAL_VERTICES
+        _in_range("face_vertices", _expect(a, "face_vertices", "i", (n, 3)), 0, num_source_vertices)
+        if np.abs(_expect(a, "weights", "f", (n, 4)).sum(1) - 1).max() > 1e-9:
+            raise ValueError("weights: a vertex's weights do not sum to 1")
+        _expect(a, "wrap", "f", (n, 3))
+        if str(_expect(a, "unit", "U", ())) not in _UNITS:
+            raise ValueError(f"unit: {str(a['unit'])!r}, expected one of {_UNITS}")
+        if not float(_expect(a, "scale", "f", ())) > 0:
+            raise ValueError("scale: not positive")
+        _orthonormal("rotation", _expect(a, "rotation", "f", (3, 3))[None])
+        _expect(a, "translation", "f", (3,))
+
+    return check
 
 
-def _save(path: Path, reg: _register.Registration) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
+def _arrays(reg: _register.Registration) -> dict[str, np.ndarray]:
     n = reg.normalization
-    np.savez(
-        tmp,
-        version=np.int64(REGISTRATION_VERSION),
-        face_vertices=reg.correspondence.face_vertices.numpy(),
-        weights=reg.correspondence.weights.numpy(),
-        wrap=reg.wrap.numpy(),
-        unit=np.str_(n.unit),
-        scale=np.float64(n.scale),
-        rotation=n.rotation.numpy(),
-        translation=n.translation.numpy(),
-    )
-    os.replace(tmp, path)
+    return {
+        "version": np.asarray(REGISTRATION_VERSION, dtype=np.int64),
+        "face_vertices": reg.correspondence.face_vertices.numpy().astype(np.int64),
+        "weights": reg.correspondence.weights.numpy().astype(np.float64),
+        "wrap": reg.wrap.numpy().astype(np.float64),
+        "unit": np.asarray(n.unit, dtype=np.str_),
+        "scale": np.asarray(n.scale, dtype=np.float64),
+        "rotation": n.rotation.numpy().astype(np.float64),
+        "translation": n.translation.numpy().astype(np.float64),
+    }
 
 
 def topology_transfer(
@@ -117,13 +115,18 @@ def topology_transfer(
     config = _register._check_config(_register.PRESETS["default"] if config is None else config)
     v = as_vertices(vertices)
     f = as_triangles(faces, v.shape[0])
-    path = cache_path(cache_key(v, f, config))
-    loaded = _load(path, v.shape[0]) if cache and path.is_file() else None
-    if loaded is None:
+    if not cache:
         reg = _register.register(v, f, config=config)
-        if cache:
-            _save(path, reg)
         fv, w = reg.correspondence.face_vertices, reg.correspondence.weights
-    else:
-        fv, w = torch.from_numpy(loaded[0]), torch.from_numpy(loaded[1])
+        return TopologyTransfer(name, v.shape[0], fv, w)
+    from ..assets import cached_arrays
+
+    arrays = cached_arrays(
+        cache_path(cache_key(v, f, config)),
+        lambda: _arrays(_register.register(v, f, config=config)),
+        _checker(v.shape[0]),
+        what=f"the registration of {name!r}",
+        estimate="about a minute",
+    )
+    fv, w = torch.from_numpy(arrays["face_vertices"]), torch.from_numpy(arrays["weights"])
     return TopologyTransfer(name, v.shape[0], fv, w)
