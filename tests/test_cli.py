@@ -339,7 +339,7 @@ def test_demo_backend_files_are_named(tmp_path, capsys, monkeypatch):
     bad.write_bytes(b"garbage")
     for spec, code, needle in [
         (f"smpl={bad}", 3, "bad.pkl: not a loadable pickle"),
-        (f"smpl={tmp_path / 'none.pkl'}", 3, "none.pkl: no such file"),
+        (f"smpl={tmp_path / 'none.pkl'}", 3, "no SMPL-family model file at"),
         ("smpl", 2, "--backends: smpl needs its model files"),
         (f"mhr={tmp_path}", 3, "rig.npz is missing"),
     ]:
