@@ -55,3 +55,118 @@ def test_cache_is_rebuilt_when_unreadable(monkeypatch, tmp_path):
     arrays = assets.canonical_assets()
     assert arrays["bind_vertices"].shape == (18056, 3) and path.stat().st_size > 1000
     assets.canonical_assets.cache_clear()
+
+
+# Anny's own cache (~/.cache/anny): the tests point it at a temporary folder and never write the real one.
+
+
+@pytest.fixture
+def anny_cache(tmp_path, monkeypatch):
+    import anny.paths
+
+    saved = anny.paths.get_anny_cache_path()
+    anny.paths.set_anny_cache_path(tmp_path / "anny")
+    monkeypatch.setenv("UNIBODY_CACHE_DIR", str(tmp_path / "unibody"))  # the build lock lives there
+    yield tmp_path / "anny"
+    anny.paths.set_anny_cache_path(saved)
+
+
+def _truncated_safetensors(path):
+    from safetensors.torch import save_file
+
+    save_file({"template_vertices": torch.zeros(500, 3)}, str(path))
+    path.write_bytes(path.read_bytes()[:300])
+
+
+def test_an_unloadable_anny_cache_file_is_removed_and_rebuilt(anny_cache, capsys):
+    from anny.models.model_data import ModelData
+    from torch import nn
+
+    from unibody.identity.anny import _build_anny
+
+    folder = anny_cache / "v14"
+    folder.mkdir(parents=True)
+    bad, other = folder / "build_compact_model_data_x.safetensors", folder / "load_data_y.safetensors"
+    _truncated_safetensors(bad)
+    other.write_bytes(b"another entry")
+    builds = []
+
+    def make():  # what anny's cache_builder does: load when the file exists, else build and save
+        if bad.exists():
+            ModelData.load_safetensors(bad)
+        builds.append(1)
+        bad.write_bytes(b"rebuilt")
+        return nn.Identity()
+
+    with pytest.warns(assets.AssetWarning, match=r"Anny's cache file .*_x.safetensors cannot be loaded \(Safetensor"):
+        model = _build_anny(make, bad)
+    assert isinstance(model, nn.Identity) and builds == [1]
+    assert bad.read_bytes() == b"rebuilt" and other.read_bytes() == b"another entry"  # nothing else touched
+    err = capsys.readouterr().err
+    assert f"unibody: building Anny's model once (about a minute) into {anny_cache}..." in err
+    assert "unibody: built Anny's model in" in err
+    assert ModelData.__dict__["load_safetensors"].__func__.__module__ == "anny.models.model_data"  # restored
+
+
+def test_an_unwritable_anny_cache_builds_in_memory(anny_cache, tmp_path):
+    import anny.paths
+    from torch import nn
+
+    from unibody.identity.anny import _build_anny
+
+    (tmp_path / "a-file").write_text("")
+    anny.paths.set_anny_cache_path(tmp_path / "a-file" / "anny")
+    seen = []
+
+    def make():  # anny's cache_builder: mkdir the cache folder, unless caching is off (None)
+        root = anny.paths.get_anny_cache_path()
+        seen.append(root)
+        if root is not None:
+            (root / "v14").mkdir(parents=True, exist_ok=True)
+        return nn.Identity()
+
+    with pytest.warns(assets.AssetWarning, match="cannot write Anny's cache in .*a-file.*Anny's model in memory"):
+        _build_anny(make, None)
+    assert seen == [tmp_path / "a-file" / "anny", None]
+    assert anny.paths.get_anny_cache_path() == tmp_path / "a-file" / "anny"  # restored
+
+
+def test_the_predicted_anny_cache_file_is_the_one_anny_writes(anny_cache):
+    """The prediction only picks a progress message; it mirrors anny's cache_builder key."""
+    from pathlib import Path
+
+    from unibody.identity.anny import _anny_model_path
+
+    path = _anny_model_path("none")
+    assert path is not None and path.parent.parent == anny_cache
+    real = Path.home() / ".cache" / "anny" / path.parent.name
+    if real.is_dir() and any(real.glob("build_compact_model_data_*")):
+        assert (real / path.name).is_file()
+
+
+@pytest.mark.slow
+def test_a_truncated_anny_model_cache_is_rebuilt_for_real(anny_cache):
+    """End to end (~20-60 s): a truncated copy of the installed compact model is rebuilt from its source entry."""
+    from pathlib import Path
+
+    from unibody.identity.anny import AnnyIdentity, _anny_model_path
+
+    name = _anny_model_path("none").name
+    real = Path.home() / ".cache" / "anny" / "v14"
+    sources = sorted(real.glob("build_model_data_*.safetensors")) if real.is_dir() else []
+    if not (real / name).is_file() or not sources:
+        pytest.skip("no installed Anny cache to copy")
+    folder = anny_cache / "v14"
+    folder.mkdir(parents=True)
+    for src in sources:
+        (folder / src.name).write_bytes(src.read_bytes())
+    (folder / name).write_bytes((real / name).read_bytes()[:100_000])
+    with pytest.warns(assets.AssetWarning, match="cannot be loaded"):
+        rebuilt = AnnyIdentity.create()
+    import anny.paths
+
+    anny.paths.set_anny_cache_path(real.parent)  # read-only use of the installed cache
+    reference = AnnyIdentity.create()
+    params = reference.default_params(2)
+    params[1, :6] = torch.tensor([0.1, 0.9, 0.3, 0.7, 0.2, 0.8])
+    assert torch.equal(rebuilt(params), reference(params))

@@ -5,9 +5,25 @@ muscle, weight, height, proportions; age 0 is a newborn, 1 an elder) and optiona
 local-change coefficients in [-1, 1] to a rest mesh on its native 13,718-vertex topology
 through multi-linear blendshapes. Its native frame is Z up, -Y forward; this module returns
 unibody's frame (Y up, +Z forward): (x, y, z) -> (x, z, -y), metres.
+
+Anny caches its built model under its own cache folder (``~/.cache/anny``, or
+``$ANNY_CACHE_DIR``). :meth:`AnnyIdentity.create` says on stderr when it builds that model
+(the first run: about a minute), holds a lock so that concurrent processes build it once,
+removes a cache file that Anny cannot load (with a warning, touching no other file) and
+rebuilds it, and builds in memory when Anny's cache folder cannot be written. Warp's
+start-up banner, which would go to stdout, is silenced (its warnings still show).
 """
 
 from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import sys
+import time
+import warnings
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import torch
 from torch import nn
@@ -45,7 +61,10 @@ class AnnyIdentity(nn.Module):
         import anny
 
         local = list(local_changes) if isinstance(local_changes, tuple) else local_changes
-        return cls(anny.Anny(rig="anny", topology="anny", local_changes=local))
+        model = _build_anny(
+            lambda: anny.Anny(rig="anny", topology="anny", local_changes=local), _anny_model_path(local)
+        )
+        return cls(model)
 
     @property
     def num_params(self) -> int:
@@ -90,3 +109,156 @@ class AnnyIdentity(nn.Module):
         coeffs = self.model._get_phenotype_blendshape_coefficients(phen, local, params.new_zeros(params.shape[0], 0))
         v = self.model.get_rest_vertices(coeffs)
         return torch.stack([v[..., 0], v[..., 2], -v[..., 1]], dim=-1)
+
+
+def _quiet_warp() -> None:
+    """Keep Warp's start-up banner and notes off stdout (Anny initialises Warp on import)."""
+    try:
+        import warp
+    except ImportError:
+        return
+    if hasattr(warp.config, "quiet"):  # Warp < 1.10
+        warp.config.quiet = True
+    level = getattr(warp, "LOG_WARNING", None)
+    if level is not None and getattr(warp.config, "log_level", level) < level:
+        warp.config.log_level = level
+
+
+def _anny_model_path(local_changes: str | list[str]) -> Path | None:
+    """Where Anny caches the model data that ``Anny(rig="anny", topology="anny")`` loads, or None if unknown.
+
+    This mirrors ``anny.models.model_data.cache_builder`` (anny 0.6.2); it only decides which
+    progress message to print, so any mismatch costs a message, never a result.
+    """
+    try:
+        from anny.models import build_compact_model_data
+        from anny.models.model_data import CURRENT_DATA_VERSION, RigConfig, TopologyConfig, _get_builder_metadata
+        from anny.paths import get_anny_cache_path
+
+        root = get_anny_cache_path()
+        if root is None:
+            return None
+        meta = _get_builder_metadata(
+            build_compact_model_data.__wrapped__,
+            rig=RigConfig.from_string("anny"),
+            topology=TopologyConfig.from_string("anny"),
+            local_changes=local_changes,
+            facial_actions="none",
+            phenotypes="default",
+            rank=None,
+        )
+        key = hashlib.sha256(json.dumps(meta, sort_keys=True).encode()).hexdigest()[:32]
+        return Path(root) / f"v{CURRENT_DATA_VERSION}" / f"build_compact_model_data_{key}.safetensors"
+    except Exception:  # another anny version: no prediction, a plainer message
+        return None
+
+
+@contextlib.contextmanager
+def _watch_anny_cache() -> Iterator[list[tuple[Path, Exception]]]:
+    """Record (path, error) for each Anny cache file that fails to load during the block."""
+    from anny.models.model_data import ModelData
+
+    original = ModelData.__dict__["load_safetensors"]
+    failures: list[tuple[Path, Exception]] = []
+
+    def load(model_cls, path):
+        try:
+            return original.__func__(model_cls, path)
+        except Exception as exc:
+            failures.append((Path(path), exc))
+            raise
+
+    ModelData.load_safetensors = classmethod(load)
+    try:
+        yield failures
+    finally:
+        ModelData.load_safetensors = original
+
+
+@contextlib.contextmanager
+def _anny_cache_off() -> Iterator[None]:
+    """Make Anny build without reading or writing its cache during the block."""
+    import anny.paths
+
+    saved = anny.paths._ANNY_CACHE_DIR[0]
+    anny.paths._ANNY_CACHE_DIR[0] = None  # cache_builder's "no cache" case; the setter refuses None
+    try:
+        yield
+    finally:
+        anny.paths._ANNY_CACHE_DIR[0] = saved
+
+
+def _say(message: str) -> None:
+    print(f"unibody: {message}", file=sys.stderr, flush=True)
+
+
+def _build_anny(make: Callable[[], nn.Module], predicted: Path | None) -> nn.Module:
+    """``make()`` with progress messages, a build lock, and repair of Anny's unloadable cache files."""
+    from anny.paths import get_anny_cache_path
+
+    from ..assets import AssetWarning, cache_dir
+    from ..io.atomic import waiting_lock
+
+    _quiet_warp()
+    root = get_anny_cache_path()
+    with contextlib.ExitStack() as stack:
+        locked = False
+
+        def lock() -> None:
+            nonlocal locked
+            if locked or predicted is None:
+                return
+            locked = True
+            try:
+                folder = cache_dir()
+                folder.mkdir(parents=True, exist_ok=True)
+                stack.enter_context(waiting_lock(folder / f"anny-{predicted.name}", timeout=900.0))
+            except OSError:  # no writable unibody cache (or a stuck holder): build without the lock
+                pass
+
+        in_memory = False
+        for _ in range(8):  # each round removes one bad file or turns the cache off
+            if predicted is not None and not predicted.is_file():
+                lock()  # one process builds; the others wait, then load its file
+            building = in_memory or predicted is None or not predicted.is_file()
+            if building:
+                where = "in memory" if in_memory else f"into {root}"
+                known = "" if predicted is not None or in_memory else " (or loading it, if cached)"
+                _say(f"building Anny's model once (about a minute){known} {where}...")
+            t0 = time.perf_counter()
+            with _watch_anny_cache() as failures:
+                try:
+                    model = make()
+                except Exception as exc:
+                    error = exc
+                else:
+                    if building:
+                        _say(f"built Anny's model in {time.perf_counter() - t0:.1f} s")
+                    return model
+            if failures and not in_memory:
+                bad, why = failures[-1]
+                warnings.warn(
+                    f"Anny's cache file {bad} cannot be loaded ({type(why).__name__}: {why}); "
+                    "removing it and rebuilding",
+                    AssetWarning,
+                    stacklevel=3,
+                )
+                lock()
+                try:
+                    bad.unlink(missing_ok=True)
+                except OSError as exc:
+                    warnings.warn(f"cannot remove {bad} ({exc}); building Anny's model in memory", AssetWarning, 3)
+                    in_memory = True
+                    stack.enter_context(_anny_cache_off())
+            elif isinstance(error, OSError) and not in_memory:
+                warnings.warn(
+                    f"cannot write Anny's cache in {root} ({error}); building Anny's model in memory, every run "
+                    "(set ANNY_CACHE_DIR)",
+                    AssetWarning,
+                    stacklevel=3,
+                )
+                in_memory = True
+                stack.enter_context(_anny_cache_off())
+            else:
+                raise error
+        raise error
