@@ -347,3 +347,24 @@ def test_demo_backend_files_are_named(tmp_path, capsys, monkeypatch):
         assert got == code, err
         _one_line_error(err, needle)
     assert not (tmp_path / "d").exists()
+
+
+def test_npz_zip_bomb_is_refused(tmp_path, capsys):
+    """A 1 GiB array of zeros deflates to ~1 MB: refused before numpy allocates it."""
+    import zipfile
+
+    bomb = tmp_path / "bomb.npz"
+    header = b"\x93NUMPY\x01\x00v\x00{'descr': '<f4', 'fortran_order': False, 'shape': (1398101, 77, 3), }"
+    header = header + b" " * (127 - len(header)) + b"\n"
+    with (
+        zipfile.ZipFile(bomb, "w", compression=zipfile.ZIP_DEFLATED) as z,
+        z.open("pose.npy", "w", force_zip64=True) as f,
+    ):
+        f.write(header)
+        zeros = bytes(1 << 24)
+        for _ in range(64):
+            f.write(zeros)
+    assert bomb.stat().st_size < 3 << 20
+    code, _, err = _run(capsys, "pose", bomb, "--out", tmp_path / "o.npz")
+    assert code == 3
+    _one_line_error(err, "bomb.npz: member 'pose.npy' would expand", "zip bomb")

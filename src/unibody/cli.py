@@ -257,7 +257,7 @@ def run_invert(seq_path: Path, out: Path, preset: str, batch: int, force: bool =
 
 def _load_partial(path: Path, key: str) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
     """Batches saved by an interrupted run with the same input and settings, else nothing."""
-    from .io.motion import read_npz
+    from .io.npz import read_npz
 
     if not path.exists():
         return [], [], []

@@ -43,6 +43,7 @@ from torch import nn
 
 from .._checks import check_finite, check_like, check_shape
 from ..geometry.tetra import quads_to_triangles
+from ..io.npz import check_npz_members
 from ..io.obj import read_obj
 
 __all__ = ["GarmentIdentity", "GarmentPCA", "load_garment_pca", "read_point_pca", "read_point_npz"]
@@ -102,6 +103,7 @@ def read_point_npz(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray
     if not path.is_file():
         raise FileNotFoundError(f"GarmentMeasurements PCA {path} is missing")
     try:
+        check_npz_members(path)
         data = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise ValueError(f"GarmentMeasurements PCA {path}: not a readable .npz file ({exc})") from exc

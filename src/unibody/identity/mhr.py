@@ -62,6 +62,7 @@ from .._checks import check_finite, check_like, check_shape
 from ..geometry.kinematics import forward_kinematics
 from ..geometry.rotations import euler_xyz_to_matrix, quat_xyzw_to_matrix
 from ..geometry.skinning import lbs_sparse, register_skin_layout, registered_skin_layout, skin_layout
+from ..io.npz import check_npz_members
 from ..rig import KinematicTree
 
 __all__ = ["MHRAssets", "MHRIdentity", "load_mhr_assets", "MHR_SCHEMA_VERSION", "NUM_MHR_IDENTITY"]
@@ -121,6 +122,7 @@ class MHRAssets:
 def _open_npz(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
     """Read ``keys`` (and the optional limits) from an npz; other members (correctives) stay unread."""
     try:
+        check_npz_members(path)
         data = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise ValueError(f"MHR asset {path}: not a readable .npz file ({exc})") from exc

@@ -32,6 +32,7 @@ from torch.nn import functional as F
 
 from .._checks import check_finite, check_like, check_shape
 from ..io import safe_pickle
+from ..io.npz import check_npz_members
 
 __all__ = ["FAMILIES", "GENDERS", "MODEL_KEYS", "SMPLIdentity", "gender_from_path", "shape_columns"]
 
@@ -315,6 +316,7 @@ def _read_pkl(path: Path) -> dict[str, np.ndarray]:
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
     try:
+        check_npz_members(path)
         npz = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise ValueError(f"{path}: not a readable .npz archive ({e})") from None

@@ -24,9 +24,7 @@ given (numpy alone would append ``.npz`` to a name without it).
 
 from __future__ import annotations
 
-import contextlib
 import zipfile
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +32,7 @@ import numpy as np
 
 from ..rig import JOINT_NAMES
 from .atomic import save_npz
+from .npz import read_npz, reason
 
 __all__ = [
     "MOTION_FORMAT",
@@ -42,7 +41,6 @@ __all__ = [
     "check_fps",
     "load_mesh_sequence",
     "load_motion",
-    "read_npz",
     "save_motion",
 ]
 
@@ -69,37 +67,6 @@ class MeshSequence:
     identity: np.ndarray | None = None
 
 
-@contextlib.contextmanager
-def read_npz(path: str | Path) -> Iterator[np.lib.npyio.NpzFile]:
-    """Open an ``.npz`` without pickles; anything that is not one raises ``ValueError`` naming ``path``.
-
-    Raises:
-        FileNotFoundError: ``path`` does not exist.
-        ValueError: ``path`` is a folder, empty, truncated, not a zip of arrays, or holds pickled objects.
-    """
-    path = Path(path)
-    if path.is_dir():
-        raise ValueError(f"{path}: is a folder, expected an .npz file")
-    try:
-        data = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise ValueError(f"{path}: not a readable .npz file ({_reason(exc)})") from None
-    if not isinstance(data, np.lib.npyio.NpzFile):  # a bare .npy array
-        raise ValueError(f"{path}: expected an .npz file of named arrays, got a single .npy array")
-    with data:
-        yield data
-
-
-def _reason(exc: BaseException) -> str:
-    if isinstance(exc, EOFError) or "No data left" in str(exc):
-        return "empty or truncated"
-    if "pickled" in str(exc):
-        return "not a zip of arrays; pickled objects are never loaded"
-    return str(exc) or type(exc).__name__
-
-
 def _field(data: np.lib.npyio.NpzFile, key: str, path: str | Path) -> np.ndarray:
     """One array of an open npz; a damaged member raises ValueError naming the file and field."""
     try:
@@ -107,7 +74,7 @@ def _field(data: np.lib.npyio.NpzFile, key: str, path: str | Path) -> np.ndarray
     except KeyError:
         raise ValueError(f"{path}: missing field {key!r} (fields: {', '.join(data.files) or 'none'})") from None
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise ValueError(f"{path}: field {key!r} is unreadable ({_reason(exc)})") from None
+        raise ValueError(f"{path}: field {key!r} is unreadable ({reason(exc)})") from None
 
 
 def _floats(x: np.ndarray, shape: str, ok: bool, where: str) -> np.ndarray:
