@@ -30,30 +30,39 @@ __all__ = [
 ]  # fmt: skip
 
 
-def _safe_norm(v: torch.Tensor, robust: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _safe_norm(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Return ``(t, t2, small)`` for ``t = |v|`` over the last dim.
 
     ``t`` is replaced by 1 where ``small`` so sqrt and divisions by ``t`` have a
     finite gradient; ``t2`` is zeroed where not small so polynomials in it cannot
     overflow. Callers must select the Taylor branch with ``small``.
-
-    With ``robust``, ``t`` stays finite (and correct) for every finite ``v``: where
-    ``|v|^2`` overflows (``|v| > sqrt(float max)``, 1.8e19 in float32) the norm is
-    recomputed from ``v`` scaled by its largest component.
     """
     sq = (v * v).sum(-1)
     # Below t^2 = eps^(1/3) direct formulas lose ~eps/t^2 relative accuracy in their
     # derivatives, while the Taylor remainders (O(t^6)) stay below eps.
     small = sq < torch.finfo(v.dtype).eps ** (1.0 / 3.0)
     t = torch.sqrt(torch.where(small, torch.ones_like(sq), sq))
-    if robust:
-        huge = torch.isinf(sq)
-        m = torch.where(huge, v.abs().amax(-1), torch.ones_like(sq))  # 1 where unused: no 0/0
-        scaled = v / m[..., None]
-        # sqrt of a safe argument: 1 where unused, so a zero v keeps a finite gradient.
-        ssq = torch.where(huge, (scaled * scaled).sum(-1), torch.ones_like(sq))
-        t = torch.where(huge, m * torch.sqrt(ssq), t)
     return t, torch.where(small, sq, torch.zeros_like(sq)), small
+
+
+def _angle_axis(aa: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_safe_norm` of axis-angle vectors plus ``u = aa / t``, finite for any finite ``aa``.
+
+    Where ``|aa|^2`` overflows (``|aa| > sqrt(float max)``, 1.8e19 in float32) the norm and
+    the unit axis are recomputed from ``aa`` scaled by its largest component. An angle beyond
+    the dtype's largest value (only with components within sqrt(3) of it) is clamped to it:
+    still a rotation about the right axis.
+    """
+    t, t2, small = _safe_norm(aa)
+    huge = torch.isinf(t)
+    one = torch.ones_like(t)
+    m = torch.where(huge, aa.abs().amax(-1), one)  # 1 where unused: no 0 / 0
+    scaled = aa / m[..., None]
+    # sqrt of a safe argument: 1 where unused, so a zero aa keeps a finite gradient.
+    n = torch.sqrt(torch.where(huge, (scaled * scaled).sum(-1), one))
+    t = torch.where(huge, (m * n).clamp_max(torch.finfo(aa.dtype).max), t)
+    u = torch.where(huge[..., None], scaled / n[..., None], aa / t[..., None])
+    return t, t2, small, u
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:
@@ -69,7 +78,8 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     Finite and correct for every finite input, however large: the axis is normalised
     before it is squared (no ``|aa|^2`` overflow), ``|aa|`` itself is computed without
     overflow, and ``sin``/``cos`` reduce the angle modulo 2 pi exactly (e.g. an angle of
-    1e20 rad gives the rotation by ``1e20 mod 2 pi``). Near 0 the Taylor form
+    1e20 rad gives the rotation by ``1e20 mod 2 pi``); an angle beyond the dtype's largest
+    value is clamped to it (see :func:`_angle_axis`). Near 0 the Taylor form
     ``I + a K + b K^2`` with ``K = [aa]_x`` is used instead (``U = K`` there, ``t := 1``).
 
     Args:
@@ -78,14 +88,14 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     Returns:
         Rotation matrices, shape ``(..., 3, 3)``.
     """
-    t, t2, small = _safe_norm(aa, robust=True)
+    t, t2, small, u = _angle_axis(aa)
     x = t2 / 4
     # Near 0: a = sinc(t), b = (1 - cos t) / t^2 = sinc(t/2)^2 / 2 (Taylor, on K itself).
     # Elsewhere: sin t and 1 - cos t = 2 sin^2(t/2) (no cancellation), on the unit axis.
     a = torch.where(small, 1 - t2 / 6 + t2 * t2 / 120, torch.sin(t))
     half = torch.where(small, 1 - x / 6 + x * x / 120, torch.sin(t / 2))
     b = torch.where(small, 0.5, 2.0) * half * half
-    U = _skew(aa / t[..., None])
+    U = _skew(u)
     eye = torch.eye(3, dtype=aa.dtype, device=aa.device)
     return eye + a[..., None, None] * U + b[..., None, None] * (U @ U)
 
@@ -114,12 +124,12 @@ def axis_angle_to_quat_xyzw(aa: torch.Tensor) -> torch.Tensor:
     Returns:
         Quaternions xyzw, shape ``(..., 4)``.
     """
-    t, t2, small = _safe_norm(aa, robust=True)  # finite for any finite aa
+    t, t2, small, u = _angle_axis(aa)  # finite for any finite aa
     x = t2 / 4
     w = torch.where(small, 1 - x / 2 + x * x / 24, torch.cos(t / 2))
     # sin(t/2) on the unit axis (t := 1 near 0, where the Taylor sinc(t/2) / 2 applies).
     s = torch.where(small, 0.5 * (1 - x / 6 + x * x / 120), torch.sin(t / 2))
-    return torch.cat([(aa / t[..., None]) * s[..., None], w[..., None]], -1)
+    return torch.cat([u * s[..., None], w[..., None]], -1)
 
 
 def quat_xyzw_to_axis_angle(q: torch.Tensor) -> torch.Tensor:
