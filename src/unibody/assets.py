@@ -341,7 +341,8 @@ def _warn_unwritable(folder: Path, exc: BaseException) -> None:
 
 def _build_with_progress(build: Callable[[], dict[str, np.ndarray]], what: str, where: str, estimate: str) -> dict:
     about = f" ({estimate})" if estimate else ""
-    print(f"unibody: building {what} once{about} {where}...", file=sys.stderr, flush=True)
+    once = "" if where == "in memory" else " once"
+    print(f"unibody: building {what}{once}{about} {where}...", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
     arrays = build()
     print(f"unibody: built {what} in {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
