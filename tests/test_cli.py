@@ -368,3 +368,20 @@ def test_npz_zip_bomb_is_refused(tmp_path, capsys):
     code, _, err = _run(capsys, "pose", bomb, "--out", tmp_path / "o.npz")
     assert code == 3
     _one_line_error(err, "bomb.npz: member 'pose.npy' would expand", "zip bomb")
+
+
+def test_warnings_are_one_line(tmp_path, capsys, monkeypatch):
+    import warnings
+
+    import unibody.cli as cli
+
+    seq, out = _seq(tmp_path / "seq.npz", 2), tmp_path / "motion.npz"
+    original = cli._load_partial
+
+    def warn_once(*args, **kwargs):
+        warnings.warn("something to know", UserWarning, stacklevel=1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(cli, "_load_partial", warn_once)
+    code, _, err = _run(capsys, "invert", seq, "--out", out, "--preset", "fast")
+    assert code == 0 and "unibody: warning: something to know\n" in err and "warnings.warn" not in err

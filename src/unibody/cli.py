@@ -15,6 +15,7 @@ import pickle
 import sys
 import time
 import traceback
+import warnings
 import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -527,6 +528,11 @@ def _run(args: argparse.Namespace) -> None:
         run_mocap_layout(args.markers, args.out, args.base, args.frame, args.up, args.prefix, force)
 
 
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings as one line on stderr, without the source line Python prints under them."""
+    _progress(f"unibody: warning: {message}")
+
+
 def _exit_code(exc: BaseException) -> tuple[int, str]:
     """The exit code of an error (:data:`EXIT_CODES`) and its one-line message."""
     from .assets import AssetError
@@ -554,7 +560,9 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     debug = getattr(args, "debug", False)
     try:
-        with torch.no_grad():  # a context, not a global switch: callers (tests) keep their state
+        with torch.no_grad(), warnings.catch_warnings():  # contexts, not global switches: callers keep their state
+            if not debug:
+                warnings.showwarning = _warning_line
             _run(args)
     except KeyboardInterrupt:
         if debug:
