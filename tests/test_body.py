@@ -225,7 +225,10 @@ def test_matrix_pose_tolerance_and_worst_joint(rig):
     ("six", "match"),
     [
         (lambda x: x.zero_(), r"norms 0 and 0 \(expected finite and >= 1e-06\)"),
-        (lambda x: x[0, 3, 3:].zero_(), rf"'{JOINT_NAMES[4]}' \(pose index 3, batch 0\) is degenerate: .*norms 1 and 0"),
+        (
+            lambda x: x[0, 3, 3:].zero_(),
+            rf"'{JOINT_NAMES[4]}' \(pose index 3, batch 0\) is degenerate: .*norms 1 and 0",
+        ),  # noqa: E501
         (lambda x: x[0, 4, 3:].copy_(-2 * x[0, 4, :3]), r"\(pose index 4, batch 0\).*\(near-\)parallel"),
         (lambda x: x[0, 4, :3].fill_(1e300), r"norms inf and 1"),
     ],
@@ -235,6 +238,14 @@ def test_rot6d_pose_must_not_be_degenerate(layer, bind, six, match):
     x = matrix_to_rot6d(_eye(1))
     six(x)
     with pytest.raises(ValueError, match=r"pose: 6D rotation of joint .*" + match):
+        layer.pose(bind, x)
+
+
+@pytest.mark.parametrize("shape", [(1, 77, 3, 3), (2, 77, 6)])
+def test_non_finite_matrix_and_6d_poses_say_so(layer, bind, shape):
+    x = matrix_to_rot6d(_eye(shape[0])) if shape[-1] == 6 else _eye(shape[0])
+    x.view(-1)[7] = float("nan")
+    with pytest.raises(ValueError, match="pose: expected finite values, got 1 NaN/inf entries"):
         layer.pose(bind, x)
 
 
