@@ -51,7 +51,7 @@ def main() -> None:
             moved = target.clone()
             moved[:, bad] += dist * direction.to(dtype)
             row = f"{name:<26}"
-            for p, inv in inverters.items():
+            for inv in inverters.values():
                 with torch.no_grad():
                     r = inv.invert(moved, prepared)
                 keep = torch.ones(layer.num_vertices, dtype=torch.bool)

@@ -191,14 +191,23 @@ def _scaled(t, k):
         (lambda t: t * 100, r"about \d+x the size .*centimetres\? divide by 100"),
         (lambda t: t / 0.0254, r"inches\? multiply by 0.0254"),
         (lambda t: t / 1000, r"kilometres\? multiply by 1000"),
-        (lambda t: torch.rand(t.shape, generator=torch.Generator().manual_seed(0), dtype=t.dtype),
-         "vertices: mesh 0 is not a body mesh in this vertex order: the median of 512 sampled edges"),
-        (lambda t: t[:, torch.randperm(t.shape[1], generator=torch.Generator().manual_seed(0))],
-         "not a body mesh in this vertex order"),
+        (
+            lambda t: torch.rand(t.shape, generator=torch.Generator().manual_seed(0), dtype=t.dtype),
+            "vertices: mesh 0 is not a body mesh in this vertex order: the median of 512 sampled edges",
+        ),
+        (
+            lambda t: t[:, torch.randperm(t.shape[1], generator=torch.Generator().manual_seed(0))],
+            "not a body mesh in this vertex order",
+        ),
         (lambda t: t.long(), "vertices: is int64 on cpu but the inverter is float64"),
-        (lambda t: t.clone().index_fill_(1, torch.tensor([100]), 1e30), r"vertex 100 is at \(1e\+30.*beyond \+-1e\+05 m"),
-        (lambda t: t.clone().index_fill_(1, torch.arange(0, 18056, 50), 1e3),
-         r"has 362 of 18056 vertices more than \d\.\d\d m from the body's centre \(at most 180"),
+        (
+            lambda t: t.clone().index_fill_(1, torch.tensor([100]), 1e30),
+            r"vertex 100 is at \(1e\+30.*beyond \+-1e\+05 m",
+        ),
+        (
+            lambda t: t.clone().index_fill_(1, torch.arange(0, 18056, 50), 1e3),
+            r"has 362 of 18056 vertices more than \d\.\d\d m from the body's centre \(at most 180",
+        ),
         (lambda t: torch.cat([t[:1], -t[1:]]), "mesh 1 is mirrored"),
     ],
 )
@@ -248,7 +257,10 @@ def test_empty_batch_gives_empty_results(case, residuals):
     result = PoseInverter(layer, InversionConfig(method="skeleton", residuals=residuals)).invert(target[:0], prepared)
     assert result.pose.shape == (0, 77, 3) and result.rotations.shape == (0, 77, 3, 3) and result.transl.shape == (0, 3)
     if residuals:
-        assert result.vertices.shape == (0, layer.num_vertices, 3) and result.per_vertex_error.shape == (0, layer.num_vertices)
+        assert result.vertices.shape == (0, layer.num_vertices, 3) and result.per_vertex_error.shape == (
+            0,
+            layer.num_vertices,
+        )
     else:
         assert result.vertices is None and result.per_vertex_error is None
     with pytest.raises(ValueError, match=r"expected 18056 \(canonical\) or 13718 \(anny\) vertices per mesh, got 5"):

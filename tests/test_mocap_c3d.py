@@ -321,3 +321,19 @@ def test_model_output_rule():
     out = model_output_labels(labels, {"ANGLES": ["LHipAngles"]})
     # A lone xxxO label is not a segment axis; the full O/A/L/P quadruple is.
     assert out == {"PELO", "PELA", "PELL", "PELP", "CentreOfMass", "LHipAngles"}
+
+
+def test_damaged_npz_raises_value_error_naming_the_file(tmp_path):
+    """A flipped byte inside a stored array (bad CRC: zipfile.BadZipFile) or in its compression
+    method field (NotImplementedError) used to escape as those types (found by tests/fuzz)."""
+    seq = MarkerSequence(np.ones((4, 3, 3)), ("A", "B", "C"), ("", "", ""), 100.0)
+    write_npz(tmp_path / "ok.npz", seq)
+    data = (tmp_path / "ok.npz").read_bytes()
+    for where, value in ((len(data) // 2, 0), (int(0.8057 * len(data)), 1)):
+        bad = bytearray(data)
+        bad[where] = value
+        (tmp_path / "bad.npz").write_bytes(bytes(bad))
+        try:
+            read_markers(tmp_path / "bad.npz")
+        except ValueError as e:
+            assert str(tmp_path / "bad.npz") in str(e)

@@ -300,3 +300,96 @@ def test_cli_layout_adds_the_sessions_other_markers(tmp_path, capsys):
     code = main(["mocap", "layout", str(tmp_path / "session.c3d"), "--frame", "3", "--out", str(tmp_path / "x.json")])
     assert code == 2
     assert "--frame: expected a frame in 0..2" in capsys.readouterr().err
+
+
+# -- bad input (issue 35 item 14) ----------------------------------------------------------------------
+
+
+def test_label_sequence_refuses_points_not_in_metres():
+    """A sequence in millimetres read as metres used to label 0 points without a word."""
+    raw, _ = _shuffled_sequence(MarkerLayout.load("cmu41"), 4)
+    mm = MarkerSequence(raw.points * 1000, raw.labels, raw.subjects, raw.rate)
+    with pytest.raises(ValueError, match=r"seq: the points are not in metres: .* millimetres\? divide by 1000"):
+        label_sequence(mm, load_labeler("cmu41"))
+    cm = MarkerSequence(raw.points * 100, raw.labels, raw.subjects, raw.rate)
+    with pytest.raises(ValueError, match=r"centimetres\? divide by 100"):
+        label_sequence(cm, load_labeler("cmu41"))
+
+
+def test_label_sequence_ignores_far_points_and_reports(tmp_path):
+    """159 extra points per frame 8 m around the subject (before: nothing labelled) and a marker at
+    1e27 m (before: it got a label): the far points stay unlabelled, the rest is labelled as on the
+    clean sequence, and the report says so."""
+    model = load_labeler("cmu41")
+    raw, lab = _shuffled_sequence(MarkerLayout.load("cmu41"), 12)
+    clean = _right(label_sequence(raw, model), lab).mean()
+    g = np.random.default_rng(0)
+    d = g.normal(size=(12, 159, 3))
+    extra = np.nanmedian(raw.points, axis=1)[:, None] + 8.0 * d / np.linalg.norm(d, axis=-1, keepdims=True)
+    names = raw.labels + tuple(f"*x{i}" for i in range(159))
+    lines = []
+    out = label_sequence(MarkerSequence(np.concatenate([raw.points, extra], 1), names, ("",) * 200, 60.0), model,
+                         progress=lines.append)  # fmt: skip
+    assert _right(out, lab).mean() >= clean > 0.95
+    assert out.report.far_points == 12 * 159 and len(out.report.unlabelled) == 0
+    assert lines == ["1908 points farther than 2 m from their frame's main cluster were left unlabelled"]
+    absurd = raw.points.copy()
+    absurd[:, 3] = 1e27
+    out = label_sequence(MarkerSequence(absurd, raw.labels, raw.subjects, 60.0), model)
+    assert not (np.abs(out.points[:, : model.num_labels]) > 100).any()
+    assert out.report.far_points == 12 and int(out.visible.sum()) == int(raw.visible.sum())
+
+
+def test_label_sequence_reports_frames_it_cannot_label():
+    model = load_labeler("cmu41")
+    raw, _ = _shuffled_sequence(MarkerLayout.load("cmu41"), 6)
+    pts = raw.points.copy()
+    pts[1] = np.nan  # no points
+    pts[2, 2:] = np.nan  # two points
+    pts[3] = pts[3, :1] + np.arange(41)[:, None] * np.array([3.0, 0.0, 0.0])  # every point 3 m from the next
+    lines = []
+    out = label_sequence(MarkerSequence(pts, raw.labels, raw.subjects, 60.0), model, tracklets=False,
+                         progress=lines.append)  # fmt: skip
+    r = out.report
+    assert (
+        r.frames == 6
+        and r.empty.tolist() == [1]
+        and r.scattered.tolist() == [2, 3]
+        and r.unlabelled.tolist() == [1, 2, 3]
+    )
+    assert lines and lines[0].startswith(
+        "3 of 6 frames could not be labelled: 1 without points (frames 1); 2 with fewer than 3 points"
+    )
+    assert r.summary() == lines[0]
+
+
+@pytest.mark.parametrize("suffix", [".npz", ".c3d", ".txt"])
+def test_marker_writers_write_exactly_the_path_atomically(tmp_path, suffix, monkeypatch):
+    """np.savez appended .npz to a name; a failed write left a half file. Now: exactly the path,
+    and a failing write keeps the previous file."""
+    from unibody.mocap import c3d
+
+    seq = MarkerSequence(np.ones((2, 3, 3)), ("a", "b", "c"), ("",) * 3, 100.0)
+    writer = c3d.write_c3d if suffix == ".c3d" else c3d.write_npz
+    out = tmp_path / f"labels{suffix}"
+    writer(out, seq)
+    assert out.is_file() and sorted(p.name for p in tmp_path.iterdir()) == [out.name]
+    if suffix != ".txt":
+        assert read_markers(out).labels == ("a", "b", "c")
+    before = out.read_bytes()
+
+    def half_write(target):  # a disk filling up half-way through the file
+        if hasattr(target, "write"):
+            target.write(b"PK\x03\x04 half")
+        else:
+            with open(target, "wb") as f:
+                f.write(b"PK\x03\x04 half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez", lambda file, **arrays: half_write(file))
+    import ezc3d
+
+    monkeypatch.setattr(ezc3d.c3d, "write", lambda self, name: half_write(name))
+    with pytest.raises(OSError, match="No space left"):
+        writer(out, MarkerSequence(np.zeros((2, 3, 3)), ("a", "b", "c"), ("",) * 3, 100.0))
+    assert out.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [out.name]

@@ -667,7 +667,9 @@ class PoseInverter(nn.Module):
         """The result of a batch of 0 meshes, shaped as any other."""
         z, j, v = target.new_zeros, self.layer.num_joints - 1, self.layer.num_vertices
         res = self.config.residuals
-        return InversionResult(z(0, j, 3), z(0, j, 3, 3), z(0, 3), z(0, v, 3) if res else None, z(0, v) if res else None, 0)
+        return InversionResult(
+            z(0, j, 3), z(0, j, 3, 3), z(0, 3), z(0, v, 3) if res else None, z(0, v) if res else None, 0
+        )
 
     def _solve(self, target: torch.Tensor, prepared: PreparedIdentity, given: torch.Tensor) -> InversionResult:
         cfg = self.config

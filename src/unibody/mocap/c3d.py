@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import struct
 import zipfile
+import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -199,8 +200,14 @@ def read_markers(path: str | Path, *, markers_only: bool = True) -> MarkerSequen
 
 
 def write_npz(path: str | Path, seq: MarkerSequence) -> None:
-    """Write ``seq`` in the npz format of this module (points stored as float32 m)."""
-    np.savez(
+    """Write ``seq`` in the npz format of this module (points stored as float32 m).
+
+    Exactly at ``path`` (no ``.npz`` is appended), atomically: a reader sees the old file or the
+    new one, and a failed write leaves the old one (:func:`unibody.io.atomic.save_npz`).
+    """
+    from ..io.atomic import save_npz
+
+    save_npz(
         Path(path),
         format=np.array(NPZ_FORMAT),
         points=seq.points.astype(np.float32),
@@ -215,8 +222,11 @@ def write_c3d(path: str | Path, seq: MarkerSequence) -> None:
 
     Missing samples are written as NaN with residual -1. Labels get a ``Subject:`` prefix
     where a subject is set, so :func:`read_markers` gives back the same labels and subjects.
+    Written atomically at exactly ``path`` (:func:`unibody.io.atomic.atomic_path`).
     """
     import ezc3d
+
+    from ..io.atomic import atomic_path
 
     t, m = seq.num_frames, seq.num_markers
     data = np.ones((4, m, t))
@@ -232,7 +242,8 @@ def write_c3d(path: str | Path, seq: MarkerSequence) -> None:
     point["DESCRIPTIONS"]["value"] = [""] * m
     c["data"]["points"] = data
     c["data"]["meta_points"] = {"residuals": residuals, "camera_masks": np.zeros((7, m, t), dtype=bool)}
-    c.write(str(path))
+    with atomic_path(path) as tmp:
+        c.write(str(tmp))
 
 
 # --------------------------------------------------------------------------------------- npz
@@ -258,7 +269,8 @@ def _read_npz(path: Path) -> MarkerSequence:
     except ValueError as e:
         msg = str(e)
         raise ValueError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from e
-    except (OSError, EOFError, KeyError) as e:  # zip errors are OSError/BadZipFile subclasses
+    except (OSError, EOFError, KeyError, zipfile.BadZipFile, zlib.error, struct.error, NotImplementedError) as e:
+        # zip damage: a bad CRC, a corrupt deflate stream, a bad header, an unknown compression method
         raise ValueError(f"{path}: not a readable npz file ({e})") from e
 
 

@@ -22,7 +22,9 @@ pig39 --orient-with pig39``) names those markers instead of confusing them with 
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
@@ -33,10 +35,119 @@ from .c3d import MarkerSequence
 from .labeler import Labeler, label_frames
 from .layout import MarkerLayout
 from .relabel import RelabelConfig, labelled_markers, relabel
-from .solve import SolveConfig, SolveResult, derive_layout, lab_to_unibody, solve_markers
+from .solve import SolveConfig, SolveResult, check_marker_units, derive_layout, lab_to_unibody, solve_markers
 from .tracklets import label_tracklets
 
-__all__ = ["available_labelers", "frame_layout", "label_sequence", "load_labeler", "render_solution", "solve_sequence"]
+__all__ = [
+    "FAR_RADIUS",
+    "MIN_LABELLED",
+    "LabelReport",
+    "LabelledSequence",
+    "available_labelers",
+    "frame_layout",
+    "label_sequence",
+    "load_labeler",
+    "main_cluster",
+    "render_solution",
+    "solve_sequence",
+]
+
+FAR_RADIUS = (
+    2.0  # m: farther from the frame's main cluster's centre, a point is not labelled (synthetic markers: <= 1.61)
+)
+MIN_LABELLED = 3  # a frame with fewer labelled points "could not be labelled"
+
+
+@dataclass(frozen=True)
+class LabelReport:
+    """What :func:`label_sequence` could not label.
+
+    Attributes:
+        frames: T.
+        empty: frames without a visible point.
+        scattered: frames with points but fewer than ``MIN_LABELLED`` within ``FAR_RADIUS`` of
+            the frame's main cluster (nothing to label: points far apart).
+        rejected: frames whose ``MIN_LABELLED`` or more near points got fewer than ``MIN_LABELLED``
+            marker labels (the labeler took them for ghosts: another marker set, units or body?).
+        far_points: points left unlabelled because they lie farther than ``FAR_RADIUS`` from their
+            frame's main cluster (reflections, other subjects, absurd values).
+    """
+
+    frames: int
+    empty: np.ndarray
+    scattered: np.ndarray
+    rejected: np.ndarray
+    far_points: int
+
+    @property
+    def unlabelled(self) -> np.ndarray:
+        """Sorted frames that could not be labelled (any reason)."""
+        return np.sort(np.concatenate([self.empty, self.scattered, self.rejected]))
+
+    def summary(self) -> str:
+        """One line for the user; empty when every frame got labels and no point was dropped."""
+        parts = []
+        for frames, why in (
+            (self.empty, "without points"),
+            (self.scattered, f"with fewer than {MIN_LABELLED} points within {FAR_RADIUS:g} m of each other"),
+            (self.rejected, f"where the labeler named fewer than {MIN_LABELLED} points (another marker set?)"),
+        ):
+            if len(frames):
+                first = ", ".join(str(int(f)) for f in frames[:5]) + (", ..." if len(frames) > 5 else "")
+                parts.append(f"{len(frames)} {why} (frames {first})")
+        line = ""
+        if parts:
+            line = f"{len(self.unlabelled)} of {self.frames} frames could not be labelled: " + "; ".join(parts)
+        if self.far_points:
+            far = (
+                f"{self.far_points} points farther than {FAR_RADIUS:g} m from their frame's main cluster "
+                "were left unlabelled"
+            )
+            line = f"{line}; {far}" if line else far
+        return line
+
+
+@dataclass(frozen=True)
+class LabelledSequence(MarkerSequence):
+    """A :class:`MarkerSequence` from :func:`label_sequence`, with its :class:`LabelReport`."""
+
+    report: LabelReport | None = None
+
+
+def main_cluster(points: np.ndarray, radius: float = FAR_RADIUS) -> np.ndarray:
+    """(T, N) bool: the visible points within ``radius`` of their frame's main cluster's centre.
+
+    The centre is the per-axis median of the frame's visible points, then the median of the
+    points within ``radius`` of it. Where that keeps less than half of the frame's points (the
+    median fell between groups), the main cluster is the largest group within ``radius`` of one
+    point, and the centre its median. Non-finite, absurd (1e27 m) and far points are never kept.
+
+    Args:
+        points: (T, N, 3) m, NaN for missing points.
+        radius: m.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    vis = np.isfinite(pts).all(-1)
+    keep = np.zeros(vis.shape, dtype=bool)
+    any_vis = vis.any(1)
+    with np.errstate(over="ignore", invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN frames' medians
+        centre = np.nanmedian(np.where(vis[..., None], pts, np.nan), axis=1)  # (T, 3), NaN for empty frames
+        for _ in range(2):
+            dist = np.linalg.norm(pts - centre[:, None], axis=-1)
+            keep = vis & (dist <= radius)
+            ok = keep.any(1)
+            centre = np.where(ok[:, None], np.nanmedian(np.where(keep[..., None], pts, np.nan), axis=1), centre)
+        keep = vis & (np.linalg.norm(pts - centre[:, None], axis=-1) <= radius)
+        for t in np.flatnonzero(any_vis & (2 * keep.sum(1) < vis.sum(1))):
+            idx = np.flatnonzero(vis[t])
+            p = pts[t, idx]
+            d = np.linalg.norm(p[:, None] - p[None], axis=-1)
+            seed = int(np.argmax((d <= radius).sum(1)))
+            c = np.median(p[d[seed] <= radius], axis=0)
+            keep[t] = False
+            keep[t, idx] = np.linalg.norm(p - c, axis=-1) <= radius
+    return keep
 
 
 def _weights_dir():
@@ -83,19 +194,36 @@ def label_sequence(
         body: the layout of the model's markers (the same labels, in order): check the labels
             against a body solved from them (:func:`~unibody.mocap.relabel.relabel`).
         body_config: that check's thresholds.
-        progress: called with one-line reports of the check.
+        progress: called with one-line reports of the check, and with the
+            :meth:`LabelReport.summary` when some frame or point could not be labelled.
+
+    Returns:
+        The labelled sequence; its ``report`` (:class:`LabelReport`) counts the frames that
+        could not be labelled and why, and the far points left unlabelled.
+
+    Raises:
+        ValueError: ``seq`` is not in metres (:func:`~unibody.mocap.solve.check_marker_units`),
+            or ``body`` does not match the model.
+
+    Points farther than ``FAR_RADIUS`` (2 m) from their frame's main cluster
+    (:func:`main_cluster`) are not given to the labeler and stay unlabelled.
     """
     if body is not None and body.labels != model.label_names:
         raise ValueError(
             f"body: the layout {body.name!r} must name the model's {model.num_labels} labels in order "
             f"({', '.join(model.label_names[:4])}, ...), got {len(body)} ({', '.join(body.labels[:4])}, ...)"
         )
-    pts = torch.as_tensor(lab_to_unibody(seq.points, up=up))  # float64
+    check_marker_units(seq.points, "seq")
+    visible = seq.visible
+    near = main_cluster(seq.points)
+    far = visible & ~near
+    # Far points (reflections, other subjects, absurd values) never reach the labeler or the body check.
+    pts = torch.as_tensor(lab_to_unibody(np.where(near[..., None], seq.points, np.nan), up=up))  # float64
     frame = label_frames(model, pts.to(model.bin_score), batch=batch).cpu()  # (T, N), L = null; on the model's device
     null = model.num_labels
-    visible = seq.visible
     if tracklets:
         frame = label_tracklets(frame, torch.from_numpy(visible), null)
+    frame = frame.masked_fill(torch.from_numpy(far), null)  # a tracklet's label never reaches its far frames
     if body is not None:
         frame, _ = relabel(pts, frame, body, fps=seq.rate, config=body_config, progress=progress)
     out = labelled_markers(torch.from_numpy(seq.points), frame, null).numpy()
@@ -104,7 +232,18 @@ def label_sequence(
     rest = np.where(left[:, keep, None], seq.points[:, keep], np.nan)
     labels = (*model.label_names, *(f"*{i}" for i in range(len(keep))))
     points = np.concatenate([out, rest], axis=1)
-    return MarkerSequence(points, labels, ("",) * len(labels), seq.rate)
+    named = (visible & (frame != null).numpy()).sum(1)
+    n_vis, n_near = visible.sum(1), near.sum(1)
+    report = LabelReport(
+        frames=seq.num_frames,
+        empty=np.flatnonzero(n_vis == 0),
+        scattered=np.flatnonzero((n_vis > 0) & (n_near < MIN_LABELLED) & (named < MIN_LABELLED)),
+        rejected=np.flatnonzero((n_near >= MIN_LABELLED) & (named < MIN_LABELLED)),
+        far_points=int(far.sum()),
+    )
+    if progress is not None and (line := report.summary()):
+        progress(line)
+    return LabelledSequence(points, labels, ("",) * len(labels), seq.rate, report)
 
 
 def solve_sequence(

@@ -71,6 +71,7 @@ from .layout import MarkerLayout
 
 __all__ = [
     "SolveConfig",
+    "check_marker_units",
     "SolveResult",
     "derive_layout",
     "lab_to_unibody",
@@ -259,6 +260,41 @@ def _check_points(points: torch.Tensor, spec: str, m: int | None = None, name: s
     if extent > 50.0:
         raise ValueError(f"{name}: coordinates span {extent:.0f} units; expected metres (millimetres? divide by 1000)")
     return points
+
+
+def check_marker_units(points: np.ndarray, name: str = "points", frames: int = 64) -> None:
+    """Refuse marker points that are not in metres (one shared check of :mod:`unibody.mocap`).
+
+    The statistic ignores far extra points and absurd values: the 10th percentile, over up to
+    ``frames`` frames spread over the sequence (those with 3 or more visible points), of each
+    point's distance to its nearest neighbour. A body's markers sit 0.01-0.2 m apart (synthetic
+    cmu41/pig39 frames: 10th percentile 0.06 m); the same in centimetres is 1-20, in millimetres
+    10-200. Above 1 the points are refused.
+
+    Args:
+        points: (T, M, 3) with NaN for missing samples.
+        name: the argument named in the message.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    vis = np.isfinite(pts).all(-1)
+    rows = np.flatnonzero(vis.sum(1) >= 3)
+    if rows.size == 0:
+        return
+    rows = rows[np.unique(np.linspace(0, rows.size - 1, min(frames, rows.size)).round().astype(int))]
+    nearest = []
+    with np.errstate(over="ignore", invalid="ignore"):
+        for t in rows:
+            p = pts[t, vis[t]]
+            d = np.linalg.norm(p[:, None] - p[None], axis=-1)
+            np.fill_diagonal(d, np.inf)
+            nearest.append(d.min(1))
+    typical = float(np.percentile(np.concatenate(nearest), 10))
+    if typical > 1.0:
+        hint = "millimetres? divide by 1000" if typical > 5.0 else "centimetres? divide by 100"
+        raise ValueError(
+            f"{name}: the points are not in metres: neighbouring markers are typically {typical:.3g} units "
+            f"apart (a body's markers: 0.01-0.2 m); {hint}"
+        )
 
 
 def pick_frames(vis: torch.Tensor, n: int) -> torch.Tensor:
