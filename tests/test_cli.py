@@ -385,3 +385,31 @@ def test_warnings_are_one_line(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(cli, "_load_partial", warn_once)
     code, _, err = _run(capsys, "invert", seq, "--out", out, "--preset", "fast")
     assert code == 0 and "unibody: warning: something to know\n" in err and "warnings.warn" not in err
+
+
+def _markers(path: Path, points: np.ndarray) -> Path:
+    from unibody.mocap.c3d import MarkerSequence, write_npz
+
+    n = points.shape[1]
+    write_npz(path, MarkerSequence(points, tuple(f"*{i}" for i in range(n)), ("",) * n, 100.0))
+    return path
+
+
+def test_mocap_label_refuses_wrong_units_and_unlabellable_files(tmp_path, capsys):
+    from test_mocap_pipeline import smooth_sequence
+    from unibody.mocap.layout import MarkerLayout
+    from unibody.mocap.solve import unibody_to_lab
+
+    markers, _ = smooth_sequence(MarkerLayout.load("cmu41"), frames=4)
+    lab = unibody_to_lab(markers.numpy(), up="z")
+    mm = _markers(tmp_path / "mm.npz", 1000 * lab)
+    code, out, err = _run(capsys, "mocap", "label", mm, "--out", tmp_path / "o.npz", "--per-frame")
+    assert code == 3 and out == ""
+    _one_line_error(err, "mm.npz: the points are not in metres", "divide by 1000")
+    apart = np.zeros((4, 2, 3))
+    apart[:, 1, 0] = 5.0  # two points 5 m apart per frame: nothing to label
+    sparse = _markers(tmp_path / "apart.npz", apart)
+    code, out, err = _run(capsys, "mocap", "label", sparse, "--out", tmp_path / "o.npz", "--per-frame")
+    assert code == 3 and out == ""
+    _one_line_error(err, "apart.npz: no frame could be labelled", "4 of 4 frames")
+    assert not (tmp_path / "o.npz").exists()

@@ -375,8 +375,11 @@ def run_mocap_label(
         except ValueError as err:  # about an option (--body, --up) or about the file's data
             if str(err).split(":")[0] in ("body", "up"):
                 raise UsageError(f"--{err}") from None
-            raise InputError(_naming(src, err)) from None
+            raise InputError(f"{src}: {str(err).removeprefix('seq: ')}") from None
         dt = time.perf_counter() - t
+        report = labelled.report
+        if report.frames and len(report.unlabelled) == report.frames:
+            raise InputError(f"{src}: no frame could be labelled: {report.summary()}")
         (write_c3d if out.suffix.lower() == ".c3d" else write_npz)(out, labelled)
     found = int(labelled.visible[:, : labeler.num_labels].sum())
     total = int(seq.visible.sum())
