@@ -227,7 +227,8 @@ def test_rigid_motion_invariance(canonical, posed):
     torch.testing.assert_close(edge_lengths(moved, topo), edge_lengths(x, topo), atol=1e-12, rtol=0)
     torch.testing.assert_close(dihedral_angles(moved, topo), dihedral_angles(x, topo), atol=1e-8, rtol=0)
     rl, ra = rla(x, moved, topo)
-    assert float(rl.abs().max()) < 1e-12 and float(ra.abs().max()) < 1e-8
+    # Relative length error ~ eps * (coordinates ~1.5 m) / (shortest edges ~0.3 mm) ~ 1e-12.
+    assert float(rl.abs().max()) < 1e-11 and float(ra.abs().max()) < 1e-8
     rl, ra = rla(x, x, topo)
     assert float(rl.abs().max()) == 0 and float(ra.abs().max()) == 0
 
