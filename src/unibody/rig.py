@@ -8,7 +8,7 @@ Joint names and parents are the public contract: use :func:`joint_index`, never 
 from __future__ import annotations
 
 import difflib
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import cached_property
 
 import numpy as np
@@ -135,25 +135,11 @@ class Rig:
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Rig:
         """Build a rig from the arrays of :func:`unibody.assets.canonical_assets`."""
-        t = {k: torch.from_numpy(np.asarray(v)) for k, v in arrays.items() if k not in ("joint_names", "parents")}
+        tensors = {f.name: torch.from_numpy(np.asarray(arrays[f.name])) for f in fields(cls)[2:]}  # after names, tree
         return cls(
             joint_names=tuple(str(n) for n in arrays["joint_names"]),
             tree=KinematicTree(tuple(int(p) for p in arrays["parents"])),
-            **{
-                k: t[k]
-                for k in (
-                    "bind_vertices",
-                    "faces",
-                    "skin_vertex",
-                    "skin_joint",
-                    "skin_weight",
-                    "rbf_joint",
-                    "rbf_vertex",
-                    "rbf_weight",
-                    "bind_transforms",
-                    "tpose_orient",
-                )
-            },
+            **tensors,
         )
 
     @classmethod

@@ -16,7 +16,7 @@ import contextlib
 import errno
 import os
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import IO
 
@@ -136,8 +136,7 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
-@contextlib.contextmanager
-def output_lock(path: str | os.PathLike[str], name: str = "--out") -> Iterator[None]:
+def output_lock(path: str | os.PathLike[str], name: str = "--out") -> contextlib.AbstractContextManager[None]:
     """Hold ``<path>.lock`` for the block; raise OutputError if another process holds it.
 
     The lock is an advisory ``flock``: the system releases it when its holder dies, so a
@@ -145,33 +144,20 @@ def output_lock(path: str | os.PathLike[str], name: str = "--out") -> Iterator[N
     """
     import fcntl
 
-    lock = Path(f"{path}.lock")
-    while True:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    def refuse(fd: int, lock: Path) -> None:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
-            os.close(fd)
-            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            if exc.errno in _BUSY:
                 raise OutputError(f"{name}: another process is writing {path} (lock {lock})") from None
             raise
-        # The previous holder may have removed the file between our open and our lock: retry on the new one.
-        try:
-            same = os.stat(lock).st_ino == os.fstat(fd).st_ino
-        except FileNotFoundError:
-            same = False
-        if same:
-            break
-        os.close(fd)
-    try:
-        yield
-    finally:
-        lock.unlink(missing_ok=True)
-        os.close(fd)
+
+    return _held(path, refuse)
 
 
-@contextlib.contextmanager
-def waiting_lock(path: str | os.PathLike[str], timeout: float | None = None, poll: float = 0.05) -> Iterator[None]:
+def waiting_lock(
+    path: str | os.PathLike[str], timeout: float | None = None, poll: float = 0.05
+) -> contextlib.AbstractContextManager[None]:
     """Hold ``<path>.lock`` for the block, waiting for another process that holds it.
 
     The waiting twin of :func:`output_lock` (same advisory ``flock``, released by the system
@@ -189,24 +175,36 @@ def waiting_lock(path: str | os.PathLike[str], timeout: float | None = None, pol
     import fcntl
     import time
 
+    def wait(fd: int, lock: Path) -> None:
+        if timeout is None:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            return
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return
+            except OSError as exc:
+                if exc.errno not in _BUSY:
+                    raise
+                if time.monotonic() >= deadline:
+                    raise TimeoutError(f"another process held {lock} for over {timeout:g} s") from None
+                time.sleep(poll)
+
+    return _held(path, wait)
+
+
+_BUSY = (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
+
+
+@contextlib.contextmanager
+def _held(path: str | os.PathLike[str], acquire: Callable[[int, Path], None]) -> Iterator[None]:
+    """Lock ``<path>.lock`` with ``acquire(fd, lock)`` for the block; remove the lock file after."""
     lock = Path(f"{path}.lock")
-    deadline = None if timeout is None else time.monotonic() + timeout
     while True:
         fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
         try:
-            if deadline is None:
-                fcntl.flock(fd, fcntl.LOCK_EX)
-            else:
-                while True:
-                    try:
-                        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                        break
-                    except OSError as exc:
-                        if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                            raise
-                        if time.monotonic() >= deadline:
-                            raise TimeoutError(f"another process held {lock} for over {timeout:g} s") from None
-                        time.sleep(poll)
+            acquire(fd, lock)
         except BaseException:
             os.close(fd)
             raise
