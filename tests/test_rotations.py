@@ -321,6 +321,18 @@ def test_orthonormalize(dtype):
     assert_rotation(rot.orthonormalize(reflection), 10 * TOL[dtype])
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_skew_is_the_cross_product_matrix(dtype):
+    g = gen(32)
+    v = torch.randn(4, 5, 3, generator=g, dtype=dtype)
+    u = torch.randn(4, 5, 3, generator=g, dtype=dtype)
+    K = rot.skew(v)
+    assert K.shape == (4, 5, 3, 3) and K.dtype == dtype
+    torch.testing.assert_close(K, -K.transpose(-1, -2), atol=0, rtol=0)
+    torch.testing.assert_close((K @ u[..., None])[..., 0], torch.linalg.cross(v, u))
+    torch.testing.assert_close(K, skew(v), atol=0, rtol=0)
+
+
 # ------------------------------------------------------------------ gradients
 def grad_of(fn, x: torch.Tensor) -> torch.Tensor:
     x = x.clone().requires_grad_(True)

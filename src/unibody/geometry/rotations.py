@@ -26,7 +26,8 @@ __all__ = [
     "axis_angle_to_matrix", "axis_angle_to_quat_xyzw", "euler_xyz_to_matrix",
     "matrix_to_axis_angle", "matrix_to_euler_xyz", "matrix_to_quat_xyzw", "matrix_to_rot6d",
     "orthonormalize", "quat_xyzw_conjugate", "quat_xyzw_multiply", "quat_xyzw_to_axis_angle",
-    "quat_xyzw_to_matrix", "rot6d_to_matrix", "rotation_angle", "shortest_arc", "swing_twist",
+    "quat_xyzw_to_matrix", "rot6d_to_matrix", "rotation_angle", "shortest_arc", "skew",
+    "swing_twist",
 ]  # fmt: skip
 
 
@@ -65,11 +66,21 @@ def _angle_axis(aa: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Ten
     return t, t2, small, u
 
 
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    """Cross-product matrix ``[v]_x`` with ``[v]_x @ u == v x u``; ``(...,3) -> (...,3,3)``."""
+def skew(v: torch.Tensor) -> torch.Tensor:
+    """Cross-product matrix ``[v]_x`` with ``[v]_x @ u == v x u``.
+
+    Args:
+        v: Vectors, shape ``(..., 3)``.
+
+    Returns:
+        Skew-symmetric matrices, shape ``(..., 3, 3)``.
+    """
     x, y, z = v.unbind(-1)
     o = torch.zeros_like(x)
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).unflatten(-1, (3, 3))
+
+
+_skew = skew  # transitional alias while other modules switch to ``skew``
 
 
 def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
@@ -95,7 +106,7 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     a = torch.where(small, 1 - t2 / 6 + t2 * t2 / 120, torch.sin(t))
     half = torch.where(small, 1 - x / 6 + x * x / 120, torch.sin(t / 2))
     b = torch.where(small, 0.5, 2.0) * half * half
-    U = _skew(u)
+    U = skew(u)
     eye = torch.eye(3, dtype=aa.dtype, device=aa.device)
     return eye + a[..., None, None] * U + b[..., None, None] * (U @ U)
 
