@@ -319,6 +319,10 @@ def test_orthonormalize(dtype):
     assert geodesic(rot.orthonormalize(noisy), R).max() < 1e-2
     reflection = -R  # det -1: the nearest rotation must still have det +1
     assert_rotation(rot.orthonormalize(reflection), 10 * TOL[dtype])
+    # One nearest rotation in the package: the public name is procrustes.polar_svd.
+    from unibody.geometry.procrustes import polar_svd
+
+    torch.testing.assert_close(rot.orthonormalize(noisy), polar_svd(noisy), atol=0, rtol=0)
 
 
 @pytest.mark.parametrize("dtype", DTYPES)

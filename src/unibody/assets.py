@@ -138,23 +138,19 @@ def _coo(matrix: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return rows.numpy(), cols.numpy(), dense[rows, cols].numpy()
 
 
-def _orthonormalize(rot: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(rot)
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ (np.eye(3) * np.stack([np.ones_like(d), np.ones_like(d), d], -1)[..., None, :]) @ vt
-
-
 def _build(folder: Path) -> dict[str, np.ndarray]:
+    from .geometry.procrustes import polar_svd
     from .geometry.tetra import build_correspondence, quads_to_triangles
     from .io.obj import read_obj
 
     rig = torch.load(folder / "soma_rig.pt", weights_only=True)
     faces = torch.load(folder / "soma_faces.pt", weights_only=True)
-    bind = rig["bind_world_transforms"].double().numpy().copy()
+    bind = rig["bind_world_transforms"].double().clone()
     bind[:, :3, 3] *= _CM_TO_M
-    # The stored rotations are orthonormal to 7e-8; snap them so that R^T is R^-1 exactly.
-    bind[:, :3, :3] = _orthonormalize(bind[:, :3, :3])
-    tpose = _orthonormalize(rig["t_pose_world"].double().numpy()[:, :3, :3])
+    # The stored rotations are orthonormal to 7e-8; snap them so that R^T is R^-1 to rounding.
+    bind[:, :3, :3] = polar_svd(bind[:, :3, :3])
+    bind = bind.numpy()
+    tpose = polar_svd(rig["t_pose_world"].double()[:, :3, :3]).numpy()
     # The stored weights sum to 1 within 1e-7; renormalise so LBS is affine-exact.
     weights = rig["skinning_weights"].double()
     sv, sj, sw = _coo(weights / weights.sum(1, keepdim=True))

@@ -22,6 +22,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from .procrustes import polar_svd
+
 __all__ = [
     "axis_angle_to_matrix", "axis_angle_to_quat_xyzw", "euler_xyz_to_matrix",
     "matrix_to_axis_angle", "matrix_to_euler_xyz", "matrix_to_quat_xyzw", "matrix_to_rot6d",
@@ -383,13 +385,13 @@ def rotation_angle(R: torch.Tensor) -> torch.Tensor:
 def orthonormalize(R: torch.Tensor) -> torch.Tensor:
     """Nearest rotation (Frobenius) via SVD with a determinant fix; not for hot paths.
 
+    The one implementation is :func:`unibody.geometry.procrustes.polar_svd`; this name is
+    kept because error messages point users to it.
+
     Args:
         R: Approximate rotation matrices, shape ``(..., 3, 3)``.
 
     Returns:
         Rotation matrices, shape ``(..., 3, 3)``.
     """
-    U, _, Vh = torch.linalg.svd(R)
-    d = torch.det(U @ Vh)
-    D = torch.cat([torch.ones_like(d)[..., None].expand(*d.shape, 2), d[..., None]], -1)
-    return (U * D[..., None, :]) @ Vh
+    return polar_svd(R)
