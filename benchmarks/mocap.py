@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -418,7 +419,7 @@ def main() -> None:
     for m in (*models.values(), *sessions.values()):
         m.eval().set_autocast(torch.bfloat16 if args.bf16 else None)
         if args.retry is not None and m.orienter is not None:
-            m.config["retry"] = args.retry
+            m.config = replace(m.config, retry=args.retry)
     bf16 = ", networks in bfloat16" if args.bf16 else ""
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads{bf16}")
     if "label" in args.sections:

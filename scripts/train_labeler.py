@@ -254,7 +254,7 @@ def main(argv: list[str] | None = None) -> None:
         orienter = orienter.orienter or orienter  # a two-stage labeler lends its first stage
         if not set(orienter.label_names) <= set(layout.labels):
             raise SystemExit(f"--orient-with: {args.orient_with} labels {orienter.label_names}, not in {layout.name}")
-        orienter.config["refine"] = args.orienter_refine
+        orienter = orienter.with_config(refine=args.orienter_refine)
         template, torso = torso_template(layout.subset(orienter.label_names))
         orient = {"orienter": orienter, "template": template, "torso": torso}
     model = Labeler(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import math
 from pathlib import Path
@@ -14,7 +15,7 @@ import torch
 from unibody.io.motion import Motion, save_motion
 from unibody.mocap import labeler
 from unibody.mocap.corrupt import MocapBatch
-from unibody.mocap.labeler import Labeler, label_frames, labeling_loss, predict
+from unibody.mocap.labeler import Labeler, LabelerConfig, label_frames, labeling_loss, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.metrics import labeling_scores
 from unibody.mocap.synthetic import SyntheticConfig, SyntheticMocap
@@ -339,12 +340,54 @@ def test_midrange_centre_ignores_a_crowd_of_extra_points(tmp_path):
     assert torch.equal(midrange.centres(padded, torch.cat([mask, torch.zeros(1, 5, dtype=torch.bool)], 1)),
                        midrange.centres(pts, mask))  # fmt: skip
     midrange.save(tmp_path / "m.pt")
-    assert Labeler.load(tmp_path / "m.pt").config["centre"] == "midrange"
+    assert Labeler.load(tmp_path / "m.pt").config.centre == "midrange"
     with pytest.raises(ValueError, match="centre"):
         Labeler(5, centre="mean")
     Labeler(5, refine=2).save(tmp_path / "r.pt")
-    assert Labeler.load(tmp_path / "r.pt").config["refine"] == 2
+    assert Labeler.load(tmp_path / "r.pt").config.refine == 2
     with pytest.raises(ValueError, match="refine"):
         Labeler(5, refine=-1)
     with pytest.raises(ValueError, match="refine"):
         midrange(pts, mask, refine=-1)
+
+
+def test_labeler_config_is_frozen_checked_and_saved_as_a_plain_dict(tmp_path):
+    """LabelerConfig: frozen; changing a setting gives a checked copy; the weights file keeps a plain dict."""
+    model = Labeler(5, width=8, layers=1, heads=2, refine=1)
+    assert model.config == LabelerConfig(5, width=8, layers=1, heads=2, refine=1)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        model.config.refine = 2
+    other = model.with_config(refine=3, centre="midrange")
+    assert (other.config.refine, other.config.centre, model.config.refine) == (3, "midrange", 1)
+    assert torch.equal(other.bin_score, model.bin_score) and other.bin_score is not model.bin_score
+    model.config = dataclasses.replace(model.config, sinkhorn_iters=20)
+    assert model.config.sinkhorn_iters == 20
+    with pytest.raises(ValueError, match="width are fixed by the weights"):
+        model.config = dataclasses.replace(model.config, width=16)
+    with pytest.raises(ValueError, match="retry: expected 0, or a confidence in"):
+        model.with_config(retry=0.5)  # no orienter
+    with pytest.raises(TypeError, match="config: expected a LabelerConfig"):
+        model.config = {"refine": 1}
+    with pytest.raises(ValueError, match="centre"):
+        LabelerConfig(5, centre="mean")
+    model.save(tmp_path / "c.pt")
+    payload = torch.load(tmp_path / "c.pt", weights_only=True)
+    assert payload["config"] == dict(num_labels=5, width=8, layers=1, heads=2, sinkhorn_iters=20, centre="median",
+                                     refine=1, retry=0.0)  # fmt: skip
+    assert Labeler.load(tmp_path / "c.pt").config == model.config
+    old = dict(payload, config={k: v for k, v in payload["config"].items() if k != "retry"})  # a file before retry
+    torch.save(old, tmp_path / "old.pt")
+    assert Labeler.load(tmp_path / "old.pt").config.retry == 0.0
+
+
+@pytest.mark.parametrize("name", ["cmu41", "pig39"])
+def test_shipped_weights_load_and_save_the_same_config_dict(tmp_path, name):
+    from importlib import resources
+
+    with resources.as_file(resources.files("unibody.mocap") / "data" / f"labeler_{name}.pt") as f:
+        stored = torch.load(f, weights_only=True)["config"]
+        model = Labeler.load(f)
+    assert model.config.to_dict() == {k: v for k, v in stored.items() if k != "orienter"}
+    assert model.orienter.config.to_dict() == stored["orienter"]
+    model.save(tmp_path / "again.pt")
+    assert torch.load(tmp_path / "again.pt", weights_only=True)["config"] == stored

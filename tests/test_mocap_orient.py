@@ -91,13 +91,14 @@ def _two_stage(num_labels=8, seed=0):
 def test_two_stage_labeler_saves_loads_and_keeps_its_first_stage_frozen(tmp_path):
     model = _two_stage().eval()
     assert all(not p.requires_grad for p in model.orienter.parameters())
-    assert model.config["orienter"]["refine"] == 1
+    assert model.orienter.config.refine == 1
     pts = torch.randn(3, 10, 3)
     mask = torch.ones(3, 10, dtype=torch.bool)
     mask[0, 7:] = False
     model.save(tmp_path / "two.pt")
     loaded = Labeler.load(tmp_path / "two.pt").eval()
     assert loaded.config == model.config and torch.equal(loaded.template, model.template)
+    assert loaded.orienter.config == model.orienter.config
     assert all(not p.requires_grad for p in loaded.orienter.parameters())
     with torch.no_grad():
         out = model(pts, mask)
@@ -165,7 +166,7 @@ def test_training_script_trains_the_second_stage_only(tmp_path, monkeypatch):
     for k, v in first.state_dict().items():
         assert torch.equal(two.orienter.state_dict()[k], v), k  # the first stage is never trained
     assert not torch.equal(two.embed[0].weight, first.embed[0].weight)  # the second is
-    assert two.meta["orient_with"].endswith("labeler.pt") and two.config["orienter"]["refine"] == 1
+    assert two.meta["orient_with"].endswith("labeler.pt") and two.orienter.config.refine == 1
     template, torso = torso_template(MarkerLayout.load("cmu41"))
     assert torch.equal(two.template, template) and torch.equal(two.torso, torso)
     # a session layout: cmu41 and two more markers; shared labels keep their score rows
@@ -225,7 +226,7 @@ def test_retry_never_leaves_a_frame_less_sure_and_keeps_the_sure_ones(tmp_path):
     retrying.load_state_dict(model.state_dict())
     retrying.save(tmp_path / "r.pt")
     loaded = Labeler.load(tmp_path / "r.pt").eval()
-    assert loaded.config["retry"] == 1.0
+    assert loaded.config.retry == 1.0
     with torch.no_grad():
         torch.testing.assert_close(loaded(pts, mask), model(pts, mask, retry=1.0))
     model(pts, mask, retry=cut).logsumexp(dim=(1, 2)).sum().backward()  # the frames kept carry gradients

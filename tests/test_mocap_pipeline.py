@@ -70,7 +70,7 @@ def test_shipped_retry_rights_frames_the_first_stage_turned_the_wrong_way():
     left axis (the body lies on its back): the second stage labels them badly and unsurely, and the
     retry (the shipped 0.9) orients them again and labels them as well as upright frames."""
     model = load_labeler("cmu41").eval()
-    assert model.config["retry"] == 0.9
+    assert model.config.retry == 0.9
     syn = SyntheticMocap(
         MarkerLayout.load("cmu41"), SyntheticConfig(identities=16, pool_seed=777, pose=dict(POSE, tumble=0.0))
     )

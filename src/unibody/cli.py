@@ -344,7 +344,6 @@ def run_mocap_label(
     from ._checks import check_device
     from .io.atomic import check_output, output_lock
     from .mocap.c3d import read_markers, write_c3d, write_npz
-    from .mocap.labeler import check_retry
     from .mocap.layout import MarkerLayout, available_layouts
     from .mocap.pipeline import label_sequence, load_labeler
 
@@ -362,10 +361,9 @@ def run_mocap_label(
         layout = MarkerLayout.load(body or model)
     if retry is not None:
         try:
-            check_retry(retry, labeler.orienter is not None)
+            labeler = labeler.with_config(retry=retry)
         except ValueError as err:
             raise UsageError(f"--{err}") from None
-        labeler.config["retry"] = retry
     with output_lock(out):
         t = time.perf_counter()
         try:

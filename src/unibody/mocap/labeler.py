@@ -38,8 +38,10 @@ thousands of frames per second on two CPU threads.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -54,7 +56,7 @@ from .sinkhorn import log_sinkhorn
 if TYPE_CHECKING:
     from .corrupt import MocapBatch
 
-__all__ = ["LABELER_FORMAT", "Labeler", "label_frames", "labeling_loss", "predict"]
+__all__ = ["LABELER_FORMAT", "Labeler", "LabelerConfig", "check_retry", "label_frames", "labeling_loss", "predict"]
 
 LABELER_FORMAT = "unibody.labeler/1"
 _NEG_BIAS = -1.0e9  # attention logit of padding keys: softmax weight exactly 0
@@ -104,6 +106,54 @@ def _check_plain(x: object, name: str) -> None:
         raise TypeError(f"{name}: expected str/int/float/bool/None or lists/dicts of them, got {type(x).__name__}")
 
 
+_ARCHITECTURE = ("num_labels", "width", "layers", "heads")  # fixed by the weights
+
+
+@dataclass(frozen=True)
+class LabelerConfig:
+    """The settings of a :class:`Labeler` (saved with its weights as a plain dict, :meth:`to_dict`).
+
+    ``num_labels``, ``width``, ``layers`` and ``heads`` fix the network's shape; the others
+    only change how it labels and may differ between two labelers with the same weights
+    (:meth:`Labeler.with_config`). The attributes are the :class:`Labeler` arguments of the
+    same names.
+    """
+
+    num_labels: int
+    width: int = 96
+    layers: int = 4
+    heads: int = 4
+    sinkhorn_iters: int = 35
+    centre: str = "median"
+    refine: int = 0
+    retry: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.num_labels < 1:
+            raise ValueError(f"num_labels: expected >= 1, got {self.num_labels}")
+        if self.width < 1 or self.layers < 0 or self.heads < 1 or self.width % self.heads:
+            raise ValueError(
+                f"width/heads: expected width divisible by heads, got width={self.width}, heads={self.heads}"
+            )
+        if self.sinkhorn_iters < 1:
+            raise ValueError(f"sinkhorn_iters: expected >= 1, got {self.sinkhorn_iters}")
+        if self.centre not in ("median", "midrange"):
+            raise ValueError(f"centre: expected 'median' or 'midrange', got {self.centre!r}")
+        if self.refine < 0:
+            raise ValueError(f"refine: expected >= 0, got {self.refine}")
+        check_retry(self.retry, True)  # the range; whether retry needs an orienter is the Labeler's check
+        object.__setattr__(self, "retry", float(self.retry))
+
+    def to_dict(self) -> dict:
+        """The settings as a plain dict (what the weights file stores)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, config: dict) -> LabelerConfig:
+        """Settings from a weights file's dict (absent keys take their defaults, e.g. ``retry`` in older files)."""
+        return cls(**config)
+
+
 class Labeler(nn.Module):
     """Label the points of mocap frames with L marker labels or null.
 
@@ -134,6 +184,8 @@ class Labeler(nn.Module):
             confidence, so a retried frame is never less sure than it was.
 
     Attributes:
+        config: the :class:`LabelerConfig` (frozen); assign a changed copy
+            (``dataclasses.replace(model.config, retry=0.5)``, checked) or use :meth:`with_config`.
         meta: free-form training record (command, seed, steps, metrics), saved with the weights.
     """
 
@@ -154,25 +206,14 @@ class Labeler(nn.Module):
         retry: float = 0.0,
     ) -> None:
         super().__init__()
-        if num_labels < 1:
-            raise ValueError(f"num_labels: expected >= 1, got {num_labels}")
-        if width < 1 or layers < 0 or heads < 1 or width % heads:
-            raise ValueError(f"width/heads: expected width divisible by heads, got width={width}, heads={heads}")
-        if sinkhorn_iters < 1:
-            raise ValueError(f"sinkhorn_iters: expected >= 1, got {sinkhorn_iters}")
-        if centre not in ("median", "midrange"):
-            raise ValueError(f"centre: expected 'median' or 'midrange', got {centre!r}")
-        if refine < 0:
-            raise ValueError(f"refine: expected >= 0, got {refine}")
+        config = LabelerConfig(num_labels, width, layers, heads, sinkhorn_iters, centre, refine, retry)
         check_retry(retry, orienter is not None)
         names = tuple(str(i) for i in range(num_labels)) if label_names is None else tuple(label_names)
         if len(names) != num_labels:
             raise ValueError(f"label_names: expected {num_labels} names, got {len(names)}")
         self.label_names = names
         self.autocast: torch.dtype | None = None  # set_autocast
-        self.config = {"num_labels": num_labels, "width": width, "layers": layers, "heads": heads,
-                       "sinkhorn_iters": sinkhorn_iters, "centre": centre, "refine": refine,
-                       "retry": float(retry)}  # fmt: skip
+        self._config = config
         self.meta: dict = {}
         self.embed = nn.Sequential(nn.Linear(3, width), nn.ReLU(inplace=True), nn.Linear(width, width))
         self.blocks = nn.ModuleList(_Block(width, heads) for _ in range(layers))
@@ -193,9 +234,6 @@ class Labeler(nn.Module):
             if torso.dtype != torch.bool or int(torso.sum()) < 4:
                 raise ValueError(f"torso: expected a bool mask of at least 4 markers, got {torso.dtype}, {torso}")
             orienter.requires_grad_(False)
-            self.config["orienter"] = dict(orienter.config)
-            if orienter.label_names != names:
-                self.config["orienter"]["label_names"] = list(orienter.label_names)
             self.register_buffer("template", template.detach().to(self.bin_score.dtype).clone())
             self.register_buffer("torso", torso.clone())
             # each label's orienter label (the orienter's null for the labels it does not name)
@@ -204,8 +242,30 @@ class Labeler(nn.Module):
             self.register_buffer("to_orienter", torch.tensor(to_orienter), persistent=False)
 
     @property
+    def config(self) -> LabelerConfig:
+        """The settings (frozen); assigning a changed copy checks it against the weights and the orienter."""
+        return self._config
+
+    @config.setter
+    def config(self, config: LabelerConfig) -> None:
+        if not isinstance(config, LabelerConfig):
+            raise TypeError(f"config: expected a LabelerConfig, got {type(config).__name__}")
+        fixed = [f for f in _ARCHITECTURE if getattr(config, f) != getattr(self._config, f)]
+        if fixed:
+            raise ValueError(f"config: {', '.join(fixed)} are fixed by the weights; build a new Labeler to change them")
+        check_retry(config.retry, self.orienter is not None)
+        self._config = config
+
+    def with_config(self, **changes) -> Labeler:
+        """A copy of this labeler (weights, orienter, meta) with some settings changed (checked like :attr:`config`)."""
+        config = replace(self._config, **changes)
+        out = copy.deepcopy(self)
+        out.config = config
+        return out
+
+    @property
     def num_labels(self) -> int:
-        return self.config["num_labels"]
+        return self._config.num_labels
 
     def centres(self, points: torch.Tensor, mask: torch.Tensor, rule: str | None = None) -> torch.Tensor:
         """(B, 3) the point each frame is centred on (zeros for a frame without real points).
@@ -213,7 +273,7 @@ class Labeler(nn.Module):
         ``rule`` ("median" or "midrange") overrides the model's ``centre``.
         """
         real = torch.where(mask[..., None], points, torch.nan)
-        if (rule or self.config["centre"]) == "median":
+        if (rule or self._config.centre) == "median":
             centre = torch.nanmedian(real, dim=1).values
         else:  # middle of the 5-95 % range: a crowd of extra markers on the feet does not move it
             q = torch.nanquantile(real, torch.tensor([0.05, 0.95], dtype=real.dtype, device=real.device), dim=1)
@@ -278,8 +338,8 @@ class Labeler(nn.Module):
             raise TypeError(f"mask: expected a bool tensor, got {mask.dtype}")
         check_like(points, self.bin_score, "points", owner="the labeler")
         check_finite(torch.where(mask[..., None], points, 0.0), "points")
-        refine = self.config["refine"] if refine is None else refine
-        retry = self.config.get("retry", 0.0) if retry is None else retry
+        refine = self._config.refine if refine is None else refine
+        retry = self._config.retry if retry is None else retry
         if refine < 0:
             raise ValueError(f"refine: expected >= 0, got {refine}")
         check_retry(retry, self.orienter is not None)
@@ -294,7 +354,7 @@ class Labeler(nn.Module):
         if len(points) > _CHUNK and points.device.type == "cpu":  # frames are independent: the same plans
             parts = (points.split(_CHUNK), mask.split(_CHUNK), centre.split(_CHUNK))
             return torch.cat([self._label(p, m, c, refine) for p, m, c in zip(*parts, strict=True)])
-        iters, null = self.config["sinkhorn_iters"], self.num_labels
+        iters, null = self._config.sinkhorn_iters, self.num_labels
         for _ in range(refine):
             with torch.no_grad():
                 plan = log_sinkhorn(self.scores(points, mask, centre), self.bin_score, mask, iters)
@@ -390,9 +450,21 @@ class Labeler(nn.Module):
         meta = dict(self.meta if meta is None else meta)
         _check_plain(meta, "meta")
         state = {k: v.detach().cpu() for k, v in self.state_dict().items()}
-        payload = {"format": LABELER_FORMAT, "config": dict(self.config), "label_names": list(self.label_names),
+        config = self._config.to_dict()
+        if self.orienter is not None:
+            config["orienter"] = self.orienter.config.to_dict()
+            if self.orienter.label_names != self.label_names:
+                config["orienter"]["label_names"] = list(self.orienter.label_names)
+        payload = {"format": LABELER_FORMAT, "config": config, "label_names": list(self.label_names),
                    "meta": meta, "state_dict": state}  # fmt: skip
         torch.save(payload, Path(path))
+
+    @classmethod
+    def from_config(cls, config: LabelerConfig, **kwargs) -> Labeler:
+        """A new (untrained) labeler with ``config``'s settings; ``kwargs``: the other :class:`Labeler` arguments."""
+        if not isinstance(config, LabelerConfig):
+            raise TypeError(f"config: expected a LabelerConfig, got {type(config).__name__}")
+        return cls(config.num_labels, **{k: v for k, v in config.to_dict().items() if k != "num_labels"}, **kwargs)
 
     @classmethod
     def load(cls, path: str | Path, *, map_location: str | torch.device = "cpu") -> Labeler:
@@ -401,15 +473,16 @@ class Labeler(nn.Module):
         if not isinstance(payload, dict) or payload.get("format") != LABELER_FORMAT:
             found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
             raise ValueError(f"{path}: expected a {LABELER_FORMAT!r} file, got {found!r}")
-        cfg = payload["config"]
+        cfg = dict(payload["config"])
         names = payload["label_names"]
+        parts = {}
         if "orienter" in cfg:  # placeholders, filled by the state dict
             ocfg = dict(cfg.pop("orienter"))
-            n = ocfg.pop("num_labels")
             onames = ocfg.pop("label_names", names)
-            cfg.update(orienter=cls(n, label_names=onames, **ocfg), template=torch.zeros(n, 3),
-                       torso=torch.arange(n) < 4)  # fmt: skip
-        model = cls(cfg.pop("num_labels"), label_names=names, **cfg)
+            n = ocfg["num_labels"]
+            parts = {"orienter": cls.from_config(LabelerConfig.from_dict(ocfg), label_names=onames),
+                     "template": torch.zeros(n, 3), "torso": torch.arange(n) < 4}  # fmt: skip
+        model = cls.from_config(LabelerConfig.from_dict(cfg), label_names=names, **parts)
         model.load_state_dict(payload["state_dict"])
         model.meta = payload["meta"]
         return model
