@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import copy
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -237,6 +239,25 @@ def test_label_sequence_per_frame_keeps_unlabelled_points():
     n_in, n_out = int(seq.visible.sum()), int(out.visible.sum())
     assert n_in == n_out  # no point is lost or duplicated
     assert out.points.shape[1] >= len(layout)
+
+
+_SOLVER_MODULES = ("solve", "solve_types", "derive", "_stage1", "_stage2", "_marker_body", "relabel")
+
+
+def test_labelling_imports_no_solver_module():
+    """The label path (label_sequence, load_labeler, the frames helpers) never loads the body solver."""
+    code = f"""
+import sys
+import numpy as np
+from unibody.mocap.c3d import MarkerSequence
+from unibody.mocap.pipeline import label_sequence, load_labeler
+points = np.random.default_rng(0).uniform(0, 1, (3, 39, 3))
+out = label_sequence(MarkerSequence(points, tuple(f"*{{i}}" for i in range(39)), ("",) * 39, 100.0), load_labeler("pig39"))
+assert out.points.shape[0] == 3
+print(sorted(m for m in sys.modules if m.removeprefix("unibody.mocap.") in {_SOLVER_MODULES!r}))
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.strip() == "[]", run.stdout
 
 
 def _shuffled_sequence(layout: MarkerLayout, frames: int) -> tuple[MarkerSequence, np.ndarray]:

@@ -27,16 +27,22 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from .c3d import MarkerSequence
+from .frames import check_marker_units, lab_to_unibody
 from .labeler import Labeler, label_frames
 from .layout import MarkerLayout
-from .relabel import RelabelConfig, labelled_markers, relabel
-from .solve import SolveConfig, SolveResult, check_marker_units, derive_layout, lab_to_unibody, solve_markers
-from .tracklets import label_tracklets
+from .tracklets import label_tracklets, labelled_markers
+
+# Labelling never loads the solver: its modules are imported where a body is solved (the
+# functions below that solve, and label_sequence's body check).
+if TYPE_CHECKING:
+    from .relabel import RelabelConfig
+    from .solve import SolveConfig, SolveResult
 
 __all__ = [
     "FAR_RADIUS",
@@ -202,7 +208,7 @@ def label_sequence(
         could not be labelled and why, and the far points left unlabelled.
 
     Raises:
-        ValueError: ``seq`` is not in metres (:func:`~unibody.mocap.solve.check_marker_units`),
+        ValueError: ``seq`` is not in metres (:func:`~unibody.mocap.frames.check_marker_units`),
             or ``body`` does not match the model.
 
     Points farther than ``FAR_RADIUS`` (2 m) from their frame's main cluster
@@ -225,6 +231,8 @@ def label_sequence(
         frame = label_tracklets(frame, torch.from_numpy(visible), null)
     frame = frame.masked_fill(torch.from_numpy(far), null)  # a tracklet's label never reaches its far frames
     if body is not None:
+        from .relabel import relabel
+
         frame, _ = relabel(pts, frame, body, fps=seq.rate, config=body_config, progress=progress)
     out = labelled_markers(torch.from_numpy(seq.points), frame, null).numpy()
     left = visible & (frame == null).numpy()
@@ -264,6 +272,8 @@ def solve_sequence(
             f"seq: only {len(present)} of the layout's {len(layout)} labels are in the file "
             f"(have {', '.join(seq.labels[:12])}...); label it first (unibody mocap label)"
         )
+    from .solve import solve_markers
+
     lay = layout.subset(present)
     pts = torch.as_tensor(lab_to_unibody(seq.select(present).points, up=up), dtype=torch.float64)
     return solve_markers(pts, lay, config=config, fps=seq.rate, progress=progress)
@@ -297,6 +307,8 @@ def frame_layout(
     others = np.array([pts[i] for i, x in enumerate(seq.labels) if x not in base.labels]).reshape(-1, 3)
     others = others[np.isfinite(others).all(-1)]
     extra = torch.as_tensor(others) if len(others) else None
+    from .solve import derive_layout
+
     return derive_layout(torch.as_tensor(known), base.labels, name=name, config=config, initial=base,
                          unlabelled=extra, prefix=prefix)  # fmt: skip
 

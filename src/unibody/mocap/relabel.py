@@ -43,7 +43,7 @@ from scipy.optimize import linear_sum_assignment
 from .._checks import check_shape
 from .layout import MarkerLayout
 from .solve import SolveConfig, SolveResult, solve_markers
-from .tracklets import check_frame_labels
+from .tracklets import check_frame_labels, labelled_markers
 
 __all__ = ["RelabelConfig", "assign_points", "labelled_markers", "relabel"]
 
@@ -87,20 +87,6 @@ class RelabelConfig:
             raise ValueError(f"keep: expected 0 <= keep < 1, got {self.keep!r}")
         if not 0 < self.null_cost < 1:
             raise ValueError(f"null_cost: expected 0 < null_cost < 1, got {self.null_cost!r}")
-
-
-def labelled_markers(points: torch.Tensor, labels: torch.Tensor, m: int) -> torch.Tensor:
-    """(T, M, 3) marker columns from (T, N, 3) points and their (T, N) labels in [0, M] (M = null).
-
-    Marker m of frame t is the point labelled m there, NaN where no point is; null and absent
-    (NaN) points are left out. Same dtype as ``points``.
-    """
-    visible = torch.isfinite(points).all(-1)
-    check_frame_labels(labels, visible, m, "labels")
-    out = torch.full((points.shape[0], m, 3), math.nan, dtype=points.dtype, device=points.device)
-    f, i = (visible & (labels < m)).nonzero(as_tuple=True)
-    out[f, labels[f, i]] = points[f, i]
-    return out
 
 
 def assign_points(

@@ -62,11 +62,11 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
-from .._checks import check_shape, check_tensor
 from ..io.motion import Motion
 from ._marker_body import MarkerBody
 from ._stage1 import Stage1Result, stage1
 from ._stage2 import stage2
+from .frames import check_fps, check_marker_units, check_points, lab_to_unibody, unibody_to_lab
 from .layout import MarkerLayout
 
 __all__ = [
@@ -189,111 +189,13 @@ class SolveResult:
 
     def to_motion(self, fps: float) -> Motion:
         """The motion (``identity_backend="pca"``); it replays in ``BodyLayer.from_pca(num_components=K)``."""
-        _check_fps(fps)
+        check_fps(fps)
         return Motion(
             self.pose.detach().cpu().numpy().astype(np.float32),
             self.transl.detach().cpu().numpy().astype(np.float32),
             float(fps),
             self.identity.detach().cpu().numpy().astype(np.float32),
             "pca",
-        )
-
-
-# --------------------------------------------------------------------------- frames
-
-
-Points = torch.Tensor | np.ndarray
-
-
-def _check_fps(fps: float) -> None:
-    if isinstance(fps, bool) or not isinstance(fps, int | float) or not math.isfinite(fps) or fps <= 0:
-        raise ValueError(f"fps: expected a positive number, got {fps!r}")
-
-
-def _axes(points: Points, up: str) -> None:
-    if up not in ("y", "z"):
-        raise ValueError(f"up: expected 'y' or 'z', got {up!r}")
-    if not isinstance(points, torch.Tensor | np.ndarray):
-        raise TypeError(f"points: expected a torch.Tensor or numpy array, got {type(points).__name__}")
-    if points.shape[-1:] != (3,):
-        raise ValueError(f"points: expected shape (..., 3), got {tuple(points.shape)}")
-
-
-def lab_to_unibody(points: Points, up: str = "z") -> Points:
-    """Lab coordinates (..., 3) -> unibody's Y-up frame; Z-up: (x, y, z) -> (x, z, -y).
-
-    ``up="y"`` returns the points unchanged. Works on tensors and numpy arrays; the units
-    are kept (convert millimetres to metres yourself).
-    """
-    _axes(points, up)
-    if up == "y":
-        return points
-    x, y, z = points[..., 0], points[..., 1], points[..., 2]
-    stack = torch.stack if isinstance(points, torch.Tensor) else np.stack
-    return stack([x, z, -y], -1)
-
-
-def unibody_to_lab(points: Points, up: str = "z") -> Points:
-    """Inverse of :func:`lab_to_unibody`: (x, y, z) -> (x, -z, y) for a Z-up lab."""
-    _axes(points, up)
-    if up == "y":
-        return points
-    x, y, z = points[..., 0], points[..., 1], points[..., 2]
-    stack = torch.stack if isinstance(points, torch.Tensor) else np.stack
-    return stack([x, -z, y], -1)
-
-
-# --------------------------------------------------------------------------- solving
-
-
-def _check_points(points: torch.Tensor, spec: str, m: int | None = None, name: str = "points") -> torch.Tensor:
-    check_tensor(points, name)
-    check_shape(points, spec, name=name, sizes={} if m is None else {"M": m})
-    if not points.is_floating_point():
-        raise TypeError(f"{name}: expected float32 or float64, got {points.dtype}")
-    if bool(torch.isinf(points).any()):
-        raise ValueError(f"{name}: expected finite values or NaN for missing markers, got inf")
-    finite = points[torch.isfinite(points)]
-    if finite.numel() == 0:
-        raise ValueError(f"{name}: every marker is missing (all NaN)")
-    extent = float((finite.max() - finite.min()).abs())
-    if extent > 50.0:
-        raise ValueError(f"{name}: coordinates span {extent:.0f} units; expected metres (millimetres? divide by 1000)")
-    return points
-
-
-def check_marker_units(points: np.ndarray, name: str = "points", frames: int = 64) -> None:
-    """Refuse marker points that are not in metres (one shared check of :mod:`unibody.mocap`).
-
-    The statistic ignores far extra points and absurd values: the 10th percentile, over up to
-    ``frames`` frames spread over the sequence (those with 3 or more visible points), of each
-    point's distance to its nearest neighbour. A body's markers sit 0.01-0.2 m apart (synthetic
-    cmu41/pig39 frames: 10th percentile 0.06 m); the same in centimetres is 1-20, in millimetres
-    10-200. Above 1 the points are refused.
-
-    Args:
-        points: (T, M, 3) with NaN for missing samples.
-        name: the argument named in the message.
-    """
-    pts = np.asarray(points, dtype=np.float64)
-    vis = np.isfinite(pts).all(-1)
-    rows = np.flatnonzero(vis.sum(1) >= 3)
-    if rows.size == 0:
-        return
-    rows = rows[np.unique(np.linspace(0, rows.size - 1, min(frames, rows.size)).round().astype(int))]
-    nearest = []
-    with np.errstate(over="ignore", invalid="ignore"):
-        for t in rows:
-            p = pts[t, vis[t]]
-            d = np.linalg.norm(p[:, None] - p[None], axis=-1)
-            np.fill_diagonal(d, np.inf)
-            nearest.append(d.min(1))
-    typical = float(np.percentile(np.concatenate(nearest), 10))
-    if typical > 1.0:
-        hint = "millimetres? divide by 1000" if typical > 5.0 else "centimetres? divide by 100"
-        raise ValueError(
-            f"{name}: the points are not in metres: neighbouring markers are typically {typical:.3g} units "
-            f"apart (a body's markers: 0.01-0.2 m); {hint}"
         )
 
 
@@ -352,9 +254,9 @@ def solve_markers(
         TypeError / ValueError: bad points (shape, dtype, inf, all missing, not metres), layout or fps.
     """
     config = SolveConfig() if config is None else config
-    _check_points(points, "T M 3")
+    check_points(points, "T M 3")
     _check_layout(layout, points.shape[1])
-    _check_fps(fps)
+    check_fps(fps)
     obs = points.detach().to(torch.float64)
     vis = torch.isfinite(obs).all(-1)
     body = MarkerBody(config.shape_components, obs.device)
@@ -443,7 +345,7 @@ def derive_layout(
     """
     config = SolveConfig() if config is None else config
     labels = tuple(labels)
-    _check_points(points, "M 3", len(labels))
+    check_points(points, "M 3", len(labels))
     if initial is None:
         superset = MarkerLayout.load("superset")
         unknown = [x for x in labels if x not in superset.labels]
@@ -464,7 +366,7 @@ def derive_layout(
     slide, surface = config.derive_slide_std, config.derive_surface_std
     s1 = stage1(body, obs, vis, anchors, distance, config, slide_std=slide, surface_std=surface)
     if unlabelled is not None:
-        _check_points(unlabelled, "K 3", None, name="unlabelled")
+        check_points(unlabelled, "K 3", None, name="unlabelled")
         extra = unlabelled.detach().to(obs)
         extra = extra[torch.isfinite(extra).all(-1)]
         if len(extra):

@@ -7,17 +7,20 @@ label is a candidate, so a column that is mostly ghost stays null). Two columns 
 same label (a trajectory broken in two, or a wrong vote): in the frames where both are
 visible, the column with the larger vote share keeps the label and the others are null
 there.
+
+:func:`labelled_markers` turns per-point labels into one column per marker.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
 from .._checks import check_shape
 
-__all__ = ["TrackletVotes", "label_tracklets", "tracklet_labels", "tracklet_votes"]
+__all__ = ["TrackletVotes", "label_tracklets", "labelled_markers", "tracklet_labels", "tracklet_votes"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -106,3 +109,17 @@ def label_tracklets(frame_labels: torch.Tensor, visible: torch.Tensor, null: int
     clash = (lab[:, :, None] == lab[:, None, :]) & (lab[:, :, None] != null)  # (T, i, j)
     lost = (clash & outranks[None]).any(dim=2)
     return torch.where(lost, null, lab)
+
+
+def labelled_markers(points: torch.Tensor, labels: torch.Tensor, m: int) -> torch.Tensor:
+    """(T, M, 3) marker columns from (T, N, 3) points and their (T, N) labels in [0, M] (M = null).
+
+    Marker m of frame t is the point labelled m there, NaN where no point is; null and absent
+    (NaN) points are left out. Same dtype as ``points``.
+    """
+    visible = torch.isfinite(points).all(-1)
+    check_frame_labels(labels, visible, m, "labels")
+    out = torch.full((points.shape[0], m, 3), math.nan, dtype=points.dtype, device=points.device)
+    f, i = (visible & (labels < m)).nonzero(as_tuple=True)
+    out[f, labels[f, i]] = points[f, i]
+    return out
