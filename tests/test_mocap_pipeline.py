@@ -241,7 +241,7 @@ def test_label_sequence_per_frame_keeps_unlabelled_points():
     assert out.points.shape[1] >= len(layout)
 
 
-_SOLVER_MODULES = ("solve", "solve_types", "derive", "_stage1", "_stage2", "_marker_body", "relabel")
+_SOLVER_MODULES = ("solve", "derive", "_stage1", "_stage2", "_marker_body", "relabel")
 
 
 def test_labelling_imports_no_solver_module():
@@ -252,7 +252,8 @@ import numpy as np
 from unibody.mocap.c3d import MarkerSequence
 from unibody.mocap.pipeline import label_sequence, load_labeler
 points = np.random.default_rng(0).uniform(0, 1, (3, 39, 3))
-out = label_sequence(MarkerSequence(points, tuple(f"*{{i}}" for i in range(39)), ("",) * 39, 100.0), load_labeler("pig39"))
+seq = MarkerSequence(points, tuple(f"*{{i}}" for i in range(39)), ("",) * 39, 100.0)
+out = label_sequence(seq, load_labeler("pig39"))
 assert out.points.shape[0] == 3
 print(sorted(m for m in sys.modules if m.removeprefix("unibody.mocap.") in {_SOLVER_MODULES!r}))
 """

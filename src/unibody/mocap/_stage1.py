@@ -29,6 +29,29 @@ class Stage1Result:
     transl: torch.Tensor  # (F, 3)
 
 
+def pick_frames(vis: torch.Tensor, n: int) -> torch.Tensor:
+    """(F <= n,) frames spread over the sequence: the best visible frame of n equal segments.
+
+    In each segment the frame with the most visible markers wins (ties: the one nearest the
+    segment's middle), so a sequence with no complete frame still gets its best ones. Frames
+    with fewer than 3 visible markers are never picked.
+    """
+    t = vis.shape[0]
+    counts = vis.sum(1)
+    bounds = torch.linspace(0, t, min(n, t) + 1).round().long().tolist()
+    out = []
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        if hi <= lo:
+            continue
+        c = counts[lo:hi].double()
+        mid = (lo + hi - 1) / 2
+        score = c - 1e-3 * (torch.arange(lo, hi, dtype=torch.float64) - mid).abs() / max(1, hi - lo)
+        best = lo + int(score.argmax())
+        if counts[best] >= 3:
+            out.append(best)
+    return torch.tensor(out, dtype=torch.long)
+
+
 def _take(ident: Identity, sl) -> Identity:
     return Identity(*(getattr(ident, f)[sl] for f in ident.__dataclass_fields__))
 
