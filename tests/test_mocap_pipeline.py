@@ -415,3 +415,16 @@ def test_marker_writers_write_exactly_the_path_atomically(tmp_path, suffix, monk
     with pytest.raises(OSError, match="No space left"):
         writer(out, MarkerSequence(np.zeros((2, 3, 3)), ("a", "b", "c"), ("",) * 3, 100.0))
     assert out.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [out.name]
+
+
+def test_label_sequence_takes_layout_and_body_is_a_deprecated_name():
+    model, pig = load_labeler("cmu41"), MarkerLayout.load("pig39")
+    points = np.random.default_rng(0).uniform(0, 1, (2, 41, 3))
+    seq = MarkerSequence(points, tuple(f"*{i}" for i in range(41)), ("",) * 41, 100.0)
+    with pytest.raises(ValueError, match="layout: the layout 'pig39' must name the model's 41 labels"):
+        label_sequence(seq, model, layout=pig)
+    with pytest.warns(DeprecationWarning, match=r"body=\.\.\.\) is deprecated"):
+        with pytest.raises(ValueError, match="body: the layout 'pig39' must name the model's 41 labels"):
+            label_sequence(seq, model, body=pig)
+    with pytest.warns(DeprecationWarning), pytest.raises(TypeError, match="pass layout= only"):
+        label_sequence(seq, model, layout=pig, body=pig)

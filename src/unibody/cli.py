@@ -368,11 +368,12 @@ def run_mocap_label(
         t = time.perf_counter()
         try:
             labelled = label_sequence(
-                seq, labeler, up=up, tracklets=tracklets, body=layout, progress=lambda line: _progress("  " + line)
+                seq, labeler, up=up, tracklets=tracklets, layout=layout, progress=lambda line: _progress("  " + line)
             )
         except ValueError as err:  # about an option (--body, --up) or about the file's data
-            if str(err).split(":")[0] in ("body", "up"):
-                raise UsageError(f"--{err}") from None
+            name, _, rest = str(err).partition(":")
+            if name in ("layout", "up"):
+                raise UsageError(f"--{'body' if name == 'layout' else name}:{rest}") from None
             raise InputError(f"{src}: {str(err).removeprefix('seq: ')}") from None
         dt = time.perf_counter() - t
         report = labelled.report

@@ -3,14 +3,14 @@
     seq = read_markers("session.c3d")                       # any labels, or none ('*12')
     model = load_labeler("cmu41")                           # shipped weights, or a path
     labelled = label_sequence(seq, model)                   # MarkerSequence with the model's labels
-    checked = label_sequence(seq, model, body=MarkerLayout.load("cmu41"))  # checked by a body solve
+    checked = label_sequence(seq, model, layout=MarkerLayout.load("cmu41"))  # checked by a body solve
     result = solve_sequence(labelled, MarkerLayout.load("cmu41"))
     session = frame_layout(seq, MarkerLayout.load("pig39"), frame=0, name="session")  # + its extra markers
 
 Labelled output: one column per model label (NaN where the label is absent in a frame),
 then the points left unlabelled as ``*0``, ``*1``, ... columns (one per input column that
 kept any). With ``tracklets`` each input column (a hardware tracklet) takes the majority
-label of its frames (paper 003 §4.5), else every frame is labelled on its own. With ``body``
+label of its frames (paper 003 §4.5), else every frame is labelled on its own. With ``layout``
 the labels are then checked against a body solved from them (:func:`~unibody.mocap.relabel.relabel`):
 each point takes the solved marker it sits on, where that is clear.
 
@@ -185,10 +185,11 @@ def label_sequence(
     up: str = "z",
     tracklets: bool = True,
     batch: int = 256,
-    body: MarkerLayout | None = None,
+    layout: MarkerLayout | None = None,
     body_config: RelabelConfig | None = None,
     progress: Callable[[str], None] | None = None,
-) -> MarkerSequence:
+    body: MarkerLayout | None = None,
+) -> LabelledSequence:
     """Label every point of a marker sequence (labels already in the file are ignored).
 
     Args:
@@ -197,11 +198,12 @@ def label_sequence(
         up: "z" or "y", the vertical axis of ``seq``.
         tracklets: whether each input column takes its majority label.
         batch: frames per forward pass.
-        body: the layout of the model's markers (the same labels, in order): check the labels
+        layout: the layout of the model's markers (the same labels, in order): check the labels
             against a body solved from them (:func:`~unibody.mocap.relabel.relabel`).
         body_config: that check's thresholds.
         progress: called with one-line reports of the check, and with the
             :meth:`LabelReport.summary` when some frame or point could not be labelled.
+        body: deprecated name of ``layout`` (it is a marker layout, not a body); warns.
 
     Returns:
         The labelled sequence; its ``report`` (:class:`LabelReport`) counts the frames that
@@ -209,15 +211,26 @@ def label_sequence(
 
     Raises:
         ValueError: ``seq`` is not in metres (:func:`~unibody.mocap.frames.check_marker_units`),
-            or ``body`` does not match the model.
+            or ``layout`` does not match the model.
+        TypeError: both ``layout`` and ``body`` given.
 
     Points farther than ``FAR_RADIUS`` (2 m) from their frame's main cluster
     (:func:`main_cluster`) are not given to the labeler and stay unlabelled.
     """
-    if body is not None and body.labels != model.label_names:
+    arg = "layout"
+    if body is not None:
+        warnings.warn(
+            "label_sequence(body=...) is deprecated: it is a marker layout; pass layout=...",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        if layout is not None:
+            raise TypeError("label_sequence: got layout= and its deprecated name body=; pass layout= only")
+        layout, arg = body, "body"
+    if layout is not None and layout.labels != model.label_names:
         raise ValueError(
-            f"body: the layout {body.name!r} must name the model's {model.num_labels} labels in order "
-            f"({', '.join(model.label_names[:4])}, ...), got {len(body)} ({', '.join(body.labels[:4])}, ...)"
+            f"{arg}: the layout {layout.name!r} must name the model's {model.num_labels} labels in order "
+            f"({', '.join(model.label_names[:4])}, ...), got {len(layout)} ({', '.join(layout.labels[:4])}, ...)"
         )
     check_marker_units(seq.points, "seq")
     visible = seq.visible
@@ -230,10 +243,10 @@ def label_sequence(
     if tracklets:
         frame = label_tracklets(frame, torch.from_numpy(visible), null)
     frame = frame.masked_fill(torch.from_numpy(far), null)  # a tracklet's label never reaches its far frames
-    if body is not None:
+    if layout is not None:
         from .relabel import relabel
 
-        frame, _ = relabel(pts, frame, body, fps=seq.rate, config=body_config, progress=progress)
+        frame, _ = relabel(pts, frame, layout, fps=seq.rate, config=body_config, progress=progress)
     out = labelled_markers(torch.from_numpy(seq.points), frame, null).numpy()
     left = visible & (frame == null).numpy()
     keep = np.nonzero(left.any(axis=0))[0]
