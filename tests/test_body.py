@@ -328,3 +328,45 @@ def test_empty_batch_everywhere(rig, procedural):
             out = layer.pose(prep, pose.double())
             assert out.vertices.shape == (0, v, 3) and out.joints.shape == (0, 78, 3)
             assert out.transforms.shape == (0, 78, 4, 4) and out.rest_vertices.shape == (0, v, 3)
+
+
+def test_skinning_view_matches_the_rig_and_follows_to(rig):
+    layer = BodyLayer(rig)
+    skin = layer.skinning
+    assert torch.equal(skin.vertex, rig.skin_vertex) and torch.equal(skin.joint, rig.skin_joint)
+    assert torch.equal(skin.weight, rig.skin_weight)
+    assert (skin.num_vertices, skin.num_joints) == (rig.num_vertices, rig.num_joints)
+    assert skin.crow.shape == (rig.num_vertices + 1,) and int(skin.crow[-1]) == skin.vertex.numel()
+    counts = torch.bincount(skin.vertex, minlength=rig.num_vertices)
+    assert torch.equal(skin.crow.diff(), counts)
+    dense = skin.dense()
+    assert torch.equal(dense, rig.dense_skinning_weights())
+    assert torch.equal(skin.matrix().to_dense(), dense)
+    assert torch.allclose(dense.sum(1), torch.ones_like(dense[:, 0]))
+    with pytest.raises(AttributeError):
+        skin.weight = skin.weight * 2  # frozen
+    skin32 = layer.float().skinning
+    assert skin32.weight.dtype == torch.float32 and skin32.vertex.dtype == torch.int64
+
+
+def test_local_rotations_is_the_pose_front_end(layer, bind):
+    gen = torch.Generator().manual_seed(5)
+    pose = 0.4 * torch.randn(2, 77, 3, generator=gen, dtype=torch.float64)
+    local = layer.local_rotations(pose)
+    assert local.shape == (2, 78, 3, 3) and torch.equal(local[:, 0], torch.eye(3, dtype=local.dtype).expand(2, 3, 3))
+    # Posing from those rotations (skin_local) is posing the pose.
+    out = layer.pose(bind, pose)
+    _, joints, vertices = layer.skin_local(bind, local, torch.zeros(2, 3, dtype=torch.float64))
+    assert torch.equal(vertices, out.vertices) and torch.equal(joints, out.joints)
+    # absolute=True takes the absolute local rotations as given.
+    again = layer.local_rotations(local[:, 1:], absolute=True)
+    assert torch.equal(again, local)
+    assert torch.equal(layer.to_relative(local[:, 1:]), layer.to_relative(again[:, 1:]))
+    with pytest.raises(ValueError, match=r"pose: expected shape \(B, 77, 3\)"):
+        layer.local_rotations(pose[:, :76])
+    bad = local[:, 1:].clone()
+    bad[0, 3] *= 2
+    with pytest.raises(ValueError, match=r"pose: rotation matrix of joint .* is not a rotation"):
+        layer.local_rotations(bad, absolute=True)
+    with pytest.raises(TypeError, match=r"pose: is float32 on cpu but the layer is float64"):
+        layer.local_rotations(pose.float())

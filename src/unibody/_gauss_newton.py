@@ -14,10 +14,14 @@ Levenberg damping); increments are applied as local rotations R_k <- R_p^T exp(w
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
 from .geometry.rotations import axis_angle_to_matrix
+
+if TYPE_CHECKING:
+    from .body import BodyLayer, PreparedIdentity
 
 __all__ = ["GaussNewtonData", "gauss_newton_data", "gauss_newton"]
 
@@ -49,10 +53,11 @@ class GaussNewtonData:
     pair_weight: torch.Tensor
 
 
-def gauss_newton_data(layer, num_samples: int, seed: int = 0) -> GaussNewtonData:
+def gauss_newton_data(layer: BodyLayer, num_samples: int, seed: int = 0) -> GaussNewtonData:
     """Sample vertices and build the (vertex, ancestor joint) incidence once per layer."""
     parents = layer.rig_tree.parents
-    sv, sj, sw = (x.cpu() for x in (layer._skin_vertex, layer._skin_joint, layer.skin_weight))
+    skin = layer.skinning
+    sv, sj, sw = (x.cpu() for x in (skin.vertex, skin.joint, skin.weight))
     skinned = torch.bincount(sj, minlength=layer.num_joints) > 0
     joints = torch.nonzero(skinned).flatten()
     slot = {int(j): i for i, j in enumerate(joints)}
@@ -89,7 +94,16 @@ def _skew(v: torch.Tensor) -> torch.Tensor:
     return torch.stack([z, -w, y, w, z, -x, -y, x, z], -1).unflatten(-1, (3, 3))
 
 
-def gauss_newton(layer, data: GaussNewtonData, prepared, target, local, transl, iters: int, damping: float = 1e-6):
+def gauss_newton(
+    layer: BodyLayer,
+    data: GaussNewtonData,
+    prepared: PreparedIdentity,
+    target: torch.Tensor,
+    local: torch.Tensor,
+    transl: torch.Tensor,
+    iters: int,
+    damping: float = 1e-6,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Refine absolute local rotations (B, J, 3, 3) and translation (B, 3) by ``iters`` steps.
 
     Levenberg-Marquardt safeguard per frame: a step that does not lower the sampled

@@ -25,7 +25,7 @@ from torch import nn
 from ._checks import check_finite, check_like, check_shape, check_tensor
 from .geometry.kinematics import pose_transforms
 from .geometry.rotations import axis_angle_to_matrix, rot6d_to_matrix
-from .geometry.skinning import lbs_sparse, register_skin_layout, registered_skin_layout, skin_layout
+from .geometry.skinning import Skinning, lbs_sparse, register_skin_layout, registered_skin_layout, skin_layout
 from .rig import Rig
 from .skeleton import SkeletonTransfer
 
@@ -251,8 +251,33 @@ class BodyLayer(nn.Module):
             rest = self.topology(rest)
         return self.prepare_rest(rest)
 
-    def _local_rotations(self, pose: torch.Tensor, absolute: bool) -> torch.Tensor:
-        """(B, P, 3 | 3x3 | 6) -> absolute local rotations (B, J, 3, 3), Root = I."""
+    @property
+    def skinning(self) -> Skinning:
+        """The sparse skinning weights (vertex, joint, weight, CSR rows), read-only.
+
+        Built from the layer's buffers on each access, so it follows ``.to()``: on the layer's
+        device, weights in its dtype. Solvers use this view, never the private buffers.
+        """
+        return Skinning(
+            self._skin_vertex, self._skin_joint, self.skin_weight, self._skin_w_crow, self.num_vertices, self.num_joints
+        )
+
+    def local_rotations(self, pose: torch.Tensor, *, absolute: bool = False) -> torch.Tensor:
+        """Checked pose -> absolute local rotations (B, J, 3, 3), Root (row 0) = I.
+
+        The first step of :meth:`pose`, for solvers that run FK and skinning themselves
+        (:meth:`skin_transforms`, :meth:`skin_local`).
+
+        Args:
+            pose: (B, 77, 3) axis-angle, (B, 77, 3, 3) matrices or (B, 77, 6) continuous 6D,
+                local rotations of joints 1..77 (T-pose-relative unless ``absolute``).
+            absolute: whether ``pose`` holds absolute local rotations.
+
+        Raises:
+            TypeError: ``pose`` is not a tensor of the layer's dtype and device.
+            ValueError: a wrong shape, NaN/inf, a non-rotation matrix or a degenerate 6D
+                vector (validation as in :meth:`pose`).
+        """
         p = self.num_joints - 1
         kind = check_shape(pose, f"B {p} 3", f"B {p} 3 3", f"B {p} 6", name="pose")
         check_like(pose, self.tpose_orient, name="pose")
@@ -264,6 +289,10 @@ class BodyLayer(nn.Module):
             rot = o[self.parents[1:]].transpose(-1, -2) @ rot @ o[1:]
         eye = torch.eye(3, dtype=rot.dtype, device=rot.device).expand(rot.shape[0], 1, 3, 3)
         return torch.cat([eye, rot], dim=1)
+
+    def _local_rotations(self, pose: torch.Tensor, absolute: bool) -> torch.Tensor:
+        # Transitional: tests/test_panoman_model.py still calls it; use local_rotations.
+        return self.local_rotations(pose, absolute=absolute)
 
     def _worst(self, bad: torch.Tensor, score: torch.Tensor) -> tuple[int, int, str]:
         """(batch, pose index, description) of the bad entry with the largest ``score``."""
@@ -368,7 +397,7 @@ class BodyLayer(nn.Module):
         b = pose.shape[0]
         if prepared.batch_size not in (1, b):
             raise ValueError(f"prepared: identity batch {prepared.batch_size} must be 1 or the pose batch {b}")
-        local_r = self._local_rotations(pose, absolute)
+        local_r = self.local_rotations(pose, absolute=absolute)
         if transl is not None:
             check_shape(transl, "B 3", name="transl", sizes={"B": b})
             check_like(transl, self.tpose_orient, name="transl")

@@ -181,14 +181,12 @@ class PoseInverter(nn.Module):
         super().__init__()
         self.layer = layer
         self.config = InversionConfig() if config is None else config
-        joint_of = layer._skin_joint
-        skinned = torch.bincount(joint_of, minlength=layer.num_joints) > 0
+        skin = layer.skinning
+        skinned = torch.bincount(skin.joint, minlength=layer.num_joints) > 0
         self.register_buffer("observable", skinned[1:].clone(), persistent=False)
         names = layer.joint_names
         finger = ["Hand" in n and not n.endswith("Hand") for n in names]
-        dominant = dominant_joints(
-            layer._skin_vertex, layer._skin_joint, layer.skin_weight, layer.num_vertices, layer.num_joints
-        )
+        dominant = dominant_joints(skin.vertex, skin.joint, skin.weight, layer.num_vertices, layer.num_joints)
         cap = self.config.vertices_per_joint
         self._levels = {s: self._level_data(layer, dominant, skinned, finger, s, cap) for s in ("body", "full")}
         self._gn = (
@@ -242,7 +240,8 @@ class PoseInverter(nn.Module):
                 j = parents[j]
             return j if depth[j] == d else -1
 
-        sv, sj, sw = (x.cpu() for x in (layer._skin_vertex, layer._skin_joint, layer.skin_weight))
+        skin = layer.skinning
+        sv, sj, sw = (x.cpu() for x in (skin.vertex, skin.joint, skin.weight))
         order = torch.randperm(layer.num_vertices, generator=torch.Generator().manual_seed(0))
         out = []
         for d, level in enumerate(layer.rig_tree.levels[1:], start=1):
@@ -496,7 +495,8 @@ class PoseInverter(nn.Module):
     def _local_coords(self, prepared: PreparedIdentity) -> tuple[torch.Tensor, torch.Tensor]:
         """Per influence w_ik a_ik (Bi, nnz, 3) and per joint sum_i w_ik^2 a a^T (Bi, J, 3, 3)."""
         layer = self.layer
-        v, j, w = layer._skin_vertex, layer._skin_joint, layer.skin_weight
+        skin = layer.skinning
+        v, j, w = skin.vertex, skin.joint, skin.weight
         a = (
             prepared.rest_rotations[:, j].transpose(-1, -2)
             @ (prepared.rest_vertices[:, v] - prepared.rest_joints[:, j])[..., None]
@@ -620,7 +620,7 @@ class PoseInverter(nn.Module):
         skin_rot = frames @ rest_rot.transpose(-1, -2)
         skin_t = joints - (skin_rot @ rest_pos[..., None]).squeeze(-1)
         mats = torch.cat([skin_rot, skin_t[..., None]], dim=-1)  # (B, J, 3, 4)
-        w = csr(layer._skin_w_crow, layer._skin_joint, layer.skin_weight, (layer.num_vertices, layer.num_joints))
+        w = layer.skinning.matrix()
         blended = (w @ mats.permute(1, 0, 2, 3).reshape(layer.num_joints, -1)).view(-1, b, 3, 4).transpose(0, 1)
         rest, info = torch.linalg.solve_ex(blended[..., :3], target - blended[..., 3])
         bad = (info != 0).any(-1) | ~torch.isfinite(rest).all(-1).all(-1)

@@ -20,11 +20,52 @@ from torch import nn
 from .sparse import crow_indices as _crow
 from .sparse import csr
 
-__all__ = ["SkinLayout", "skin_layout", "register_skin_layout", "registered_skin_layout", "lbs_sparse", "lbs_dense"]
+__all__ = [
+    "Skinning",
+    "SkinLayout",
+    "skin_layout",
+    "register_skin_layout",
+    "registered_skin_layout",
+    "lbs_sparse",
+    "lbs_dense",
+]
 
 # Sparse products over B > 8 poses are faster in chunks of 8 (the (V, 3B) result stays in
 # cache): measured 18k vs 10k meshes/s at B=32 on 2 CPU cores (benchmarks/forward.py).
 _POSE_CHUNK = 8
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Skinning:
+    """Sparse skinning weights of a body, read-only: the public view solvers use.
+
+    Influence e of N moves vertex ``vertex[e]`` with joint ``joint[e]`` by ``weight[e]``.
+    Influences are sorted by vertex: those of vertex i are ``crow[i]:crow[i + 1]``.
+
+    Attributes:
+        vertex: (N,) int64 vertex ids, non-decreasing.
+        joint: (N,) int64 joint ids (Root = 0 included in the numbering).
+        weight: (N,) weights, the body's dtype; each vertex's weights sum to 1.
+        crow: (V + 1,) int64 CSR row pointers of the (V, J) weight matrix.
+        num_vertices: V.
+        num_joints: J.
+    """
+
+    vertex: torch.Tensor
+    joint: torch.Tensor
+    weight: torch.Tensor
+    crow: torch.Tensor
+    num_vertices: int
+    num_joints: int
+
+    def matrix(self) -> torch.Tensor:
+        """The (V, J) weights as a sparse CSR tensor."""
+        return csr(self.crow, self.joint, self.weight, (self.num_vertices, self.num_joints))
+
+    def dense(self) -> torch.Tensor:
+        """The (V, J) weights as a dense tensor (zeros where a joint does not skin a vertex)."""
+        out = self.weight.new_zeros(self.num_vertices, self.num_joints)
+        return out.index_put_((self.vertex, self.joint), self.weight)
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,13 +125,14 @@ def register_skin_layout(module: nn.Module, layout: SkinLayout) -> None:
     """Keep a layout on ``module`` as non-persistent buffers ``_skin_<field>`` (they follow ``.to()``)."""
     for k in _INDEX_FIELDS:
         module.register_buffer(f"_skin_{k}", getattr(layout, k), persistent=False)
-    module._skin_sizes = (layout.num_vertices, layout.num_joints)
 
 
 def registered_skin_layout(module: nn.Module) -> SkinLayout:
     """The layout stored by :func:`register_skin_layout`, on the module's current device."""
-    v, j = module._skin_sizes
-    return SkinLayout(**{k: getattr(module, f"_skin_{k}") for k in _INDEX_FIELDS}, num_vertices=v, num_joints=j)
+    fields = {k: getattr(module, f"_skin_{k}") for k in _INDEX_FIELDS}
+    # V and J from the row-pointer lengths: w_crow has V + 1 entries, xt_crow 4 J + 1.
+    v, j = fields["w_crow"].numel() - 1, (fields["xt_crow"].numel() - 1) // 4
+    return SkinLayout(**fields, num_vertices=v, num_joints=j)
 
 
 def _x_values(rest: torch.Tensor, weight: torch.Tensor, layout: SkinLayout) -> torch.Tensor:

@@ -149,9 +149,9 @@ class MarkerBody:
                 sub[s, k] = 1.0
                 stack.extend(self.tree.children[k])
         self.subtree = sub.to(dev)
-        self.weights = torch.zeros(layer.num_vertices, j_count, dtype=dt, device=dev)
-        self.weights[layer._skin_vertex, layer._skin_joint] = layer.skin_weight
-        dom = dominant_joints(layer._skin_vertex, layer._skin_joint, layer.skin_weight, layer.num_vertices, j_count)
+        skin = layer.skinning
+        self.weights = skin.dense().to(dt)  # (V, J)
+        dom = dominant_joints(skin.vertex, skin.joint, skin.weight, layer.num_vertices, j_count)
         self.torso_vertex = torch.isin(dom, torch.tensor([names.index(n) for n in _TORSO])).to(dev)
         self._init_pose_tables(names)
         faces = layer.faces.long()

@@ -361,7 +361,7 @@ class SyntheticMocap:
         prepared = PreparedIdentity(
             self.rest[ident], self.rest_rotations[ident], self.rest_joints[ident], self.offsets[ident]
         )
-        local = self.layer._local_rotations(pose, absolute=False)
+        local = self.layer.local_rotations(pose)
         _, _, mats = self.layer.skin_transforms(prepared, local, transl)  # (B, J, 3, 4)
         pick = (torch.rand(batch, m, generator=generator) * self.num_candidates).long()
         u = self.candidates.gather(1, pick.T).T  # (B, M) indices into `used`

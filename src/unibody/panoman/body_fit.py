@@ -190,7 +190,7 @@ def fit_body(
 
     def fk_joints():
         prepared = layer.prepare_identity(shape)
-        local = layer._local_rotations(pose, absolute=False)
+        local = layer.local_rotations(pose)
         _, g_pos, _ = layer.skin_transforms(prepared, local, transl)
         return g_pos[:, 1:]
 
