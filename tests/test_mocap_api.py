@@ -29,7 +29,6 @@ def test_mocap_all_snapshot_and_every_name_resolves():
         "label_sequence",
         "load_labeler",
         "read_markers",
-        "relabel",
         "render_solution",
         "solve_markers",
         "solve_sequence",

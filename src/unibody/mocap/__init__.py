@@ -12,8 +12,9 @@ Modules: ``c3d`` (C3D / npz marker files), ``layout`` (named markers on the cano
 ``solve_config``, ``_stage1``, ``_stage2``, ``solve_result``, ``derive``), ``relabel``
 (body-checked labels), ``synthetic`` and ``corrupt`` (training data), ``metrics``.
 
-Importing this package loads no weights and no solver: ``solve_markers``, ``derive_layout``,
-``relabel`` and ``RelabelConfig`` are imported from their modules on first use.
+Importing this package loads no weights and no solver: ``solve_markers``, ``derive_layout``
+and ``RelabelConfig`` are imported from their modules on first use (the body check itself is
+:func:`unibody.mocap.relabel.relabel`, not re-exported: the name is its module's).
 """
 
 from __future__ import annotations
@@ -57,7 +58,6 @@ __all__ = [
     "label_sequence",
     "load_labeler",
     "read_markers",
-    "relabel",
     "render_solution",
     "solve_markers",
     "solve_sequence",
@@ -70,7 +70,6 @@ __all__ = [
 _ON_USE = {
     "RelabelConfig": ".relabel",
     "derive_layout": ".derive",
-    "relabel": ".relabel",
     "solve_markers": ".solve",
 }
 
