@@ -231,6 +231,7 @@ def _args(out, seed=3, *extra):
             "--log-every", "1000", "--out", str(out), *extra]  # fmt: skip
 
 
+@pytest.mark.slow
 def test_training_script_resumes_bit_identically(tmp_path):
     mod = _script()
     mod.main(_args(tmp_path / "a"))
@@ -271,6 +272,7 @@ def test_training_script_on_cuda_resumes_and_loads_on_the_cpu(tmp_path):
     assert abs(a.meta["synthetic_val_accuracy"] - b.meta["synthetic_val_accuracy"]) < 0.05
 
 
+@pytest.mark.slow
 def test_training_script_grows_a_labeler_deeper(tmp_path):
     """``--init`` a labeler of fewer blocks than ``--layers``: the extra blocks start as the identity,
     so before training it labels exactly as the labeler it grew from; fewer blocks are refused."""
@@ -290,6 +292,7 @@ def test_training_script_grows_a_labeler_deeper(tmp_path):
         mod.main([*_args(tmp_path / "c"), "--init", str(tmp_path / "b" / "labeler.pt")])
 
 
+@pytest.mark.slow
 def test_training_script_motions(tmp_path):
     """``--motions`` trains on the frames of motion files; the weights name them. A file that is not
     a motion, or a probability outside [0, 1], is refused before any work."""

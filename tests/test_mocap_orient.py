@@ -150,6 +150,7 @@ def test_two_stage_labeler_errors():
         first.orient(torch.zeros(1, 8, 3), torch.ones(1, 8, dtype=torch.bool))
 
 
+@pytest.mark.slow
 def test_training_script_trains_the_second_stage_only(tmp_path, monkeypatch):
     spec = importlib.util.spec_from_file_location("train_labeler", SCRIPT)
     mod = importlib.util.module_from_spec(spec)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
+import pytest
 import torch
 
 from unibody.panoman.model import PanoMan
@@ -19,6 +20,7 @@ def _script():
     return module
 
 
+@pytest.mark.slow
 def test_build_script_tiny_recipe_and_resume(tmp_path, capsys):
     work, out = tmp_path / "work", tmp_path / "model.pt"
     argv = ["--work", str(work), "--out", str(out), "--samples", "6", "4", "4", "--components", "2", "1", "1",
