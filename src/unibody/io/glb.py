@@ -101,6 +101,10 @@ class MeshSpec:
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals, ``(V, 3)`` float64.
 
+    A numpy twin of :func:`unibody.geometry.mesh.vertex_normals` kept here because ``io`` is
+    a leaf that imports nothing from ``unibody``, and glTF wants unit normals everywhere
+    (hence ``(0, 0, 1)`` instead of zero below).
+
     Each face contributes its unnormalised normal (twice its area times the unit
     normal, counter-clockwise winding) to its three vertices.  Vertices touched by
     no face, or whose contributions cancel, get ``(0, 0, 1)``.

@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 from .._checks import check_shape
+from ..geometry import mesh
 
 __all__ = ["LAYOUT_FORMAT", "MarkerLayout", "available_layouts", "place_markers", "vertex_normals"]
 
@@ -112,15 +113,12 @@ class MarkerLayout:
 
 
 def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Area-weighted unit vertex normals (B, V, 3) of meshes (B, V, 3) with triangles (F, 3)."""
+    """Area-weighted unit vertex normals (B, V, 3) of meshes (B, V, 3) with triangles (F, 3).
+
+    :func:`unibody.geometry.mesh.vertex_normals` with the batch checked.
+    """
     check_shape(vertices, "B V 3", name="vertices")
-    f = faces.long()
-    p0, p1, p2 = (vertices[:, f[:, k]] for k in range(3))
-    fn = torch.linalg.cross(p1 - p0, p2 - p0)
-    n = torch.zeros_like(vertices)
-    for k in range(3):
-        n.index_add_(1, f[:, k], fn)
-    return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return mesh.vertex_normals(vertices, faces)
 
 
 def place_markers(

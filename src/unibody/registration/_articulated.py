@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import torch
 
+from ..geometry.mesh import vertex_normals
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from ._mesh import vertex_normals
 from ._template import Template, TemplateParams
 
 __all__ = ["ArticulatedFit", "Phase", "fit_articulated", "nearest"]

@@ -1,8 +1,7 @@
-"""Triangle-mesh helpers for registration: input checks, normals, areas, edges, sampling.
+"""Triangle-mesh helpers for registration: input checks, surface sampling, outward winding.
 
 All functions take ``vertices (V, 3)`` float and ``faces (F, 3)`` long tensors and follow
-their dtype and device. Normals are area-weighted and unit length (zero for isolated or
-degenerate vertices).
+their dtype and device. Normals, areas and edges are in :mod:`unibody.geometry.mesh`.
 """
 
 from __future__ import annotations
@@ -13,19 +12,10 @@ import numpy as np
 import torch
 
 from .._checks import check_finite
+from ..geometry.mesh import face_areas
 from ..geometry.tetra import quads_to_triangles
 
-__all__ = [
-    "as_triangles",
-    "as_vertices",
-    "face_areas",
-    "face_normals",
-    "outward",
-    "sample_surface",
-    "unique_edges",
-    "vertex_areas",
-    "vertex_normals",
-]
+__all__ = ["as_triangles", "as_vertices", "outward", "sample_surface"]
 
 
 def as_vertices(vertices: torch.Tensor | np.ndarray) -> torch.Tensor:
@@ -70,44 +60,6 @@ def as_triangles(faces: torch.Tensor | np.ndarray | Sequence[Sequence[int]], num
     if lo < 0 or hi >= num_vertices:
         raise ValueError(f"faces: expected vertex ids in [0, {num_vertices}), got range [{lo}, {hi}]")
     return tri.long()
-
-
-def _cross(v: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    a, b, c = v[faces].unbind(-2)
-    return torch.linalg.cross(b - a, c - a, dim=-1)
-
-
-def face_normals(v: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """(F, 3) unit face normals (zero for degenerate faces), right-hand rule on the winding."""
-    n = _cross(v, faces)
-    return n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
-
-
-def face_areas(v: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """(F,) triangle areas."""
-    return 0.5 * _cross(v, faces).norm(dim=-1)
-
-
-def vertex_normals(v: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """(V, 3) unit area-weighted vertex normals."""
-    n = _cross(v, faces)
-    acc = torch.zeros_like(v).index_add_(0, faces.reshape(-1), n.repeat_interleave(3, dim=0))
-    return acc / acc.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
-
-
-def vertex_areas(v: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """(V,) one third of the area of the faces around each vertex (barycentric cells)."""
-    a = face_areas(v, faces) / 3.0
-    return torch.zeros(v.shape[0], dtype=v.dtype, device=v.device).index_add_(
-        0, faces.reshape(-1), a.repeat_interleave(3)
-    )
-
-
-def unique_edges(faces: torch.Tensor) -> torch.Tensor:
-    """(E, 2) undirected edges ``i < j`` of a triangle list."""
-    e = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = torch.sort(e, dim=1).values
-    return torch.unique(e, dim=0)
 
 
 def sample_surface(

@@ -32,9 +32,9 @@ from dataclasses import dataclass
 
 import torch
 
+from ..geometry.mesh import face_normals, unique_edges, vertex_areas, vertex_normals
 from ..geometry.procrustes import polar_svd
 from ._closest import SurfaceIndex
-from ._mesh import face_normals, unique_edges, vertex_areas, vertex_normals
 from ._project import bad_triangles
 
 __all__ = ["IcpSettings", "nonrigid_icp"]

@@ -21,7 +21,7 @@ from typing import Literal
 
 import torch
 
-from ._mesh import face_areas
+from ..geometry.mesh import face_areas
 
 __all__ = ["UNITS", "Normalization", "candidate_rotations", "detect_unit", "normalization", "principal_axes"]
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import torch
 
+from ..geometry.mesh import face_areas, unique_edges
 from ._closest import SurfaceIndex
-from ._mesh import face_areas, unique_edges
 
 __all__ = ["bad_triangles", "project_onto_surface", "untangle"]
 

@@ -32,13 +32,14 @@ from typing import Literal
 import numpy as np
 import torch
 
+from ..geometry.mesh import face_areas, face_normals, vertex_normals
 from ..geometry.rotations import matrix_to_axis_angle
 from ..geometry.tetra import TetCorrespondence, lift_tetrahedra, tet_barycentric
 from ..rig import Rig
 from ._articulated import Phase, fit_articulated
 from ._closest import SurfaceIndex
 from ._labels import inner_vertices
-from ._mesh import as_triangles, as_vertices, face_areas, face_normals, outward, sample_surface, vertex_normals
+from ._mesh import as_triangles, as_vertices, outward, sample_surface
 from ._nonrigid import IcpSettings, nonrigid_icp
 from ._normalize import (
     Normalization,
