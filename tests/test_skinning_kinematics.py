@@ -95,3 +95,19 @@ def test_fk_matches_joint_loop_and_inverts(rig):
     assert (wt - ref[..., :3, 3]).abs().max() < 1e-12
     lr, lt = relative_to_parent(rig.tree, wr, wt)
     assert (lr - rot).abs().max() < 1e-12 and (lt - trans).abs().max() < 1e-12
+
+
+def test_kinematic_tree_lives_in_geometry_and_geometry_imports_no_rig():
+    import ast
+    import inspect
+
+    import unibody
+    from unibody import rig
+    from unibody.geometry import kinematics
+
+    assert rig.KinematicTree is kinematics.KinematicTree is unibody.KinematicTree
+    tree = kinematics.KinematicTree((-1, 0, 1, 1, 3))
+    assert tree.levels == ((0,), (1,), (2, 3), (4,)) and tree.children == ((1,), (2, 3), (), (4,), ())
+    # geometry is pure math: no import reaches back up into the package (rig, body, ...).
+    imported = {n.module for n in ast.walk(ast.parse(inspect.getsource(kinematics))) if isinstance(n, ast.ImportFrom)}
+    assert imported <= {"__future__", "dataclasses", "functools"}, imported

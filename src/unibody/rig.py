@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import difflib
 from dataclasses import dataclass, fields
-from functools import cached_property
 
 import numpy as np
 import torch
+
+from .geometry.kinematics import KinematicTree
 
 __all__ = ["JOINT_NAMES", "NUM_JOINTS", "NUM_POSED", "joint_index", "KinematicTree", "Rig"]
 
@@ -52,40 +53,6 @@ def joint_index(name: str) -> int:
         close = difflib.get_close_matches(name, JOINT_NAMES, n=3)
         hint = f"; did you mean {', '.join(map(repr, close))}?" if close else ""
         raise ValueError(f"joint name: unknown joint {name!r}{hint}") from None
-
-
-@dataclass(frozen=True)
-class KinematicTree:
-    """A joint hierarchy, hashable, with its breadth-first levels precomputed.
-
-    Attributes:
-        parents: parent index per joint, -1 for the root; parents precede children.
-        levels: joint indices grouped by depth, root level first.
-    """
-
-    parents: tuple[int, ...]
-
-    def __post_init__(self) -> None:
-        for j, p in enumerate(self.parents):
-            if (p < 0) != (j == 0) or p >= j:
-                raise ValueError(
-                    f"parents: joint {j} has parent {p}; expected a root at 0 "
-                    "and every parent listed before its children"
-                )
-
-    @cached_property
-    def levels(self) -> tuple[tuple[int, ...], ...]:
-        depth = [0] * len(self.parents)
-        for j in range(1, len(self.parents)):
-            depth[j] = depth[self.parents[j]] + 1
-        return tuple(tuple(j for j, d in enumerate(depth) if d == k) for k in range(max(depth) + 1))
-
-    @cached_property
-    def children(self) -> tuple[tuple[int, ...], ...]:
-        kids: list[list[int]] = [[] for _ in self.parents]
-        for j, p in enumerate(self.parents[1:], start=1):
-            kids[p].append(j)
-        return tuple(tuple(k) for k in kids)
 
 
 @dataclass(frozen=True, eq=False)

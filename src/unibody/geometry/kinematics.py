@@ -7,13 +7,46 @@ world transform composed with its local one: R_w = R_w,p R_l, t_w = R_w,p t_l + 
 
 from __future__ import annotations
 
-from functools import cache
+from dataclasses import dataclass
+from functools import cache, cached_property
 
 import torch
 
-from ..rig import KinematicTree
+__all__ = ["KinematicTree", "forward_kinematics", "pose_transforms", "relative_to_parent"]
 
-__all__ = ["forward_kinematics", "pose_transforms", "relative_to_parent", "compose", "invert"]
+
+@dataclass(frozen=True)
+class KinematicTree:
+    """A joint hierarchy, hashable, with its breadth-first levels precomputed.
+
+    Attributes:
+        parents: parent index per joint, -1 for the root; parents precede children.
+        levels: joint indices grouped by depth, root level first.
+    """
+
+    parents: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        for j, p in enumerate(self.parents):
+            if (p < 0) != (j == 0) or p >= j:
+                raise ValueError(
+                    f"parents: joint {j} has parent {p}; expected a root at 0 "
+                    "and every parent listed before its children"
+                )
+
+    @cached_property
+    def levels(self) -> tuple[tuple[int, ...], ...]:
+        depth = [0] * len(self.parents)
+        for j in range(1, len(self.parents)):
+            depth[j] = depth[self.parents[j]] + 1
+        return tuple(tuple(j for j, d in enumerate(depth) if d == k) for k in range(max(depth) + 1))
+
+    @cached_property
+    def children(self) -> tuple[tuple[int, ...], ...]:
+        kids: list[list[int]] = [[] for _ in self.parents]
+        for j, p in enumerate(self.parents[1:], start=1):
+            kids[p].append(j)
+        return tuple(tuple(k) for k in kids)
 
 
 @cache
@@ -116,16 +149,3 @@ def relative_to_parent(
     local_r = torch.where(is_root[:, None, None], rot, local_r)
     local_t = torch.where(is_root[:, None], trans, local_t)
     return local_r, local_t
-
-
-def compose(
-    r1: torch.Tensor, t1: torch.Tensor, r2: torch.Tensor, t2: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """(r1, t1) after (r2, t2): x -> r1 (r2 x + t2) + t1."""
-    return r1 @ r2, (r1 @ t2[..., None]).squeeze(-1) + t1
-
-
-def invert(r: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Inverse of a rigid transform (r orthonormal)."""
-    rt = r.transpose(-1, -2)
-    return rt, -(rt @ t[..., None]).squeeze(-1)
