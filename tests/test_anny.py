@@ -171,3 +171,18 @@ def test_a_truncated_anny_model_cache_is_rebuilt_for_real(anny_cache):
     params = reference.default_params(2)
     params[1, :6] = torch.tensor([0.1, 0.9, 0.3, 0.7, 0.2, 0.8])
     assert torch.equal(rebuilt(params), reference(params))
+
+
+def test_implements_the_identity_backend_protocol(anny_layer64):
+    from unibody.identity import PHENOTYPES
+    from unibody.identity.base import IdentityBackend, missing_members
+
+    anny = anny_layer64.identity
+    assert isinstance(anny, IdentityBackend) and missing_members(anny) == []
+    lo, hi = anny.param_bounds
+    n = len(PHENOTYPES)
+    assert lo.shape == hi.shape == (anny.num_params,) and lo.dtype == torch.float64
+    assert bool((lo[:n] == 0).all() & (hi[:n] == 1).all() & (lo[n:] == -1).all() & (hi[n:] == 1).all())
+    template = anny.template()
+    assert template.shape == (anny.num_vertices, 3)
+    assert torch.equal(template, anny(anny.default_params())[0])

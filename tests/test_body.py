@@ -370,3 +370,53 @@ def test_local_rotations_is_the_pose_front_end(layer, bind):
         layer.local_rotations(bad, absolute=True)
     with pytest.raises(TypeError, match=r"pose: is float32 on cpu but the layer is float64"):
         layer.local_rotations(pose.float())
+
+
+class _NotABackend(torch.nn.Module):
+    name = "toy"
+    num_params = 2
+
+    def forward(self, params):
+        return params
+
+
+def test_identity_must_be_an_identity_backend(rig):
+    with pytest.raises(TypeError, match=r"identity: expected an identity backend .* got _NotABackend, which lacks "
+                       r"param_names, param_bounds, default_params, template, faces$"):
+        BodyLayer(rig, _NotABackend())
+    with pytest.raises(TypeError, match=r"got str, which is not a torch.nn.Module and lacks name, param_names"):
+        BodyLayer(rig, "anny")
+    with pytest.raises(TypeError, match=r"identity: expected an identity backend .* got _NotABackend"):
+        BodyLayer.from_identity(_NotABackend())
+
+
+def test_a_user_backend_needs_no_subclassing(rig):
+    """Any nn.Module with the protocol's members works (here: the canonical mesh scaled by one parameter)."""
+    from unibody.identity.base import IdentityBackend
+
+    class Scaled(torch.nn.Module):
+        name, param_names = "scaled", ("scale",)
+        num_params, param_bounds = 1, None
+
+        def __init__(self, mesh, faces):
+            super().__init__()
+            self.register_buffer("mesh", mesh)
+            self.register_buffer("tris", faces)
+
+        def default_params(self, batch=1):
+            return self.mesh.new_ones(batch, 1)
+
+        def forward(self, params):
+            return params[:, :, None] * self.mesh
+
+        def template(self):
+            return self.mesh.clone()
+
+        def faces(self):
+            return self.tris
+
+    backend = Scaled(rig.bind_vertices, rig.faces)
+    assert isinstance(backend, IdentityBackend)
+    layer = BodyLayer(rig, backend)
+    prepared = layer.prepare_identity(torch.tensor([[1.0], [0.9]], dtype=torch.float64))
+    assert torch.allclose(prepared.rest_vertices[1], 0.9 * rig.bind_vertices)

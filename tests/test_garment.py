@@ -191,3 +191,11 @@ def test_real_garment_assets_load():
     params[1, 0] = 2.0
     out = model(params)
     assert torch.isfinite(out).all() and (out[1] - rest).abs().max() > 1e-3
+
+
+def test_implements_the_identity_backend_protocol(model64):
+    from unibody.identity.base import IdentityBackend, missing_members
+
+    assert isinstance(model64, IdentityBackend) and missing_members(model64) == []
+    assert model64.param_bounds is None  # any finite coefficient is a body of the linear model
+    assert torch.equal(model64.template(), model64(model64.default_params())[0])

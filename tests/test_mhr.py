@@ -300,3 +300,17 @@ def test_real_mhr_assets_load():
     params[1, 45:] = 0.2
     out = model(params)
     assert torch.isfinite(out).all() and (out[0] - rest).abs().max() > 1e-3 and (out[1] - rest).abs().max() > 1e-3
+
+
+def test_implements_the_identity_backend_protocol(model64):
+    import math
+
+    from unibody.identity.base import IdentityBackend, missing_members
+
+    assert isinstance(model64, IdentityBackend) and missing_members(model64) == []
+    lo, hi = model64.param_bounds
+    limits = model64.param_limits()
+    assert lo.shape == hi.shape == (model64.num_params,) and lo.dtype == torch.float64
+    assert torch.equal(lo, limits[:, 0]) and torch.equal(hi, limits[:, 1])
+    assert bool((lo[:45] == -math.inf).all() & (hi[:45] == math.inf).all())  # identity coefficients
+    assert bool(torch.isfinite(lo[45:]).all() & (lo[45:] < hi[45:]).all())  # bone scales: the file's limits

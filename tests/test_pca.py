@@ -419,3 +419,13 @@ def test_empty_batch():
     out = layer(torch.zeros(0, 10), torch.zeros(0, 77, 3))
     assert out.vertices.shape == (0, v, 3) and out.joints.shape == (0, 78, 3)
     assert out.transforms.shape == (0, 78, 4, 4) and out.rest_vertices.shape == (0, v, 3)
+
+
+def test_implements_the_identity_backend_protocol(pca64):
+    from unibody.identity.base import IdentityBackend, missing_members
+
+    assert isinstance(pca64, IdentityBackend) and missing_members(pca64) == []
+    template = pca64.template()
+    assert template.shape == (pca64.num_vertices, 3) and template.dtype == torch.float64
+    assert torch.equal(template, pca64(pca64.default_params())[0])
+    assert template.data_ptr() != pca64.mean.data_ptr()  # a copy: editing it leaves the model alone

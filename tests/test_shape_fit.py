@@ -46,7 +46,7 @@ def test_recovers_anny_phenotypes_from_the_default_start():
     assert fit.adam_steps == 0 and 0 < fit.lbfgs_steps < 100  # stopped: converged
 
 
-def test_recovers_pca_coefficients_unbounded(pca32):
+def test_recovers_pca_coefficients(pca32):
     truth = 0.8 * torch.randn(2, 10, generator=torch.Generator().manual_seed(3))
     fit = fit_identity(pca32, _reposed(pca32, truth), lbfgs_steps=50)
     assert float(fit.per_vertex_error.amax()) < 1e-3
@@ -118,23 +118,27 @@ def test_batched_lbfgs_solves_each_item_on_its_own():
 class _Limited(torch.nn.Module):
     num_params = 3
 
-    def __init__(self, limits: torch.Tensor) -> None:
+    def __init__(self, bounds) -> None:
         super().__init__()
-        self.limits = limits
-
-    def param_limits(self) -> torch.Tensor:
-        return self.limits
+        self.param_bounds = bounds
 
 
 def test_param_limits(anny32, pca32):
     anny = param_limits(anny32.identity)
     assert anny.shape == (6, 2) and bool((anny == torch.tensor([0.0, 1.0], dtype=torch.float64)).all())
     pca = param_limits(pca32.identity)
-    assert pca.shape == (10, 2) and bool((pca[:, 0] == -math.inf).all() & (pca[:, 1] == math.inf).all())
+    bound = pca32.identity.param_bound.double()
+    assert pca.shape == (10, 2) and torch.equal(pca[:, 0], -bound) and torch.equal(pca[:, 1], bound)
+    assert float(bound.min()) == 10.0  # the leading component: 10 sigma
     own = torch.tensor([[0.0, 1.0], [-2.0, math.inf], [-math.inf, math.inf]])
-    assert torch.equal(param_limits(_Limited(own)), own.double())
-    with pytest.raises(ValueError, match=r"identity.param_limits\(\): expected shape \(3, 2\), got \(3, 3\)"):
-        param_limits(_Limited(torch.zeros(3, 3)))
+    assert torch.equal(param_limits(_Limited((own[:, 0], own[:, 1]))), own.double())
+    unbounded = param_limits(_Limited(None))
+    assert bool((unbounded[:, 0] == -math.inf).all() & (unbounded[:, 1] == math.inf).all())
+    with pytest.raises(ValueError, match=r"identity.param_bounds: expected \(lower, upper\) of shape \(3,\) each, got \[\(3, 3\), \(3,\)\]"):
+        param_limits(_Limited((torch.zeros(3, 3), torch.zeros(3))))
+    with pytest.raises(ValueError, match=r"identity.param_bounds: expected .* got \[\(3,\)\]"):
+        param_limits(_Limited((torch.zeros(3),)))
+
 
 
 def test_bad_input_errors(anny32):

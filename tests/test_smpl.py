@@ -301,3 +301,13 @@ def test_real_model_files_load():
         betas[0, 0] = 2.0
         assert (layer(betas)[0] - rest).abs().max() > 1e-3, f"{path}: beta0 does not change the shape"
     assert loaded, f"no SMPL-family files among {files}"
+
+
+def test_implements_the_identity_backend_protocol(smpl_files):
+    from unibody.identity.base import IdentityBackend, missing_members
+
+    _, paths = smpl_files
+    model = SMPLIdentity.from_file(paths["npz"])
+    assert isinstance(model, IdentityBackend) and missing_members(model) == []
+    assert model.param_bounds is None  # betas are unbounded
+    assert torch.equal(model.template(), model(model.default_params())[0])

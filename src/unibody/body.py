@@ -26,6 +26,7 @@ from ._checks import check_finite, check_like, check_shape, check_tensor
 from .geometry.kinematics import pose_transforms
 from .geometry.rotations import axis_angle_to_matrix, rot6d_to_matrix
 from .geometry.skinning import Skinning, lbs_sparse, register_skin_layout, registered_skin_layout, skin_layout
+from .identity.base import IdentityBackend, check_identity_backend
 from .rig import Rig
 from .skeleton import SkeletonTransfer
 
@@ -90,25 +91,32 @@ class BodyLayer(nn.Module):
 
     Args:
         rig: the canonical rig.
-        identity: an identity backend (``params (B, K) -> native rest mesh``), or None to
-            pose canonical rest meshes given directly (:meth:`prepare_rest`).
+        identity: an identity backend, an ``nn.Module`` implementing
+            :class:`~unibody.identity.base.IdentityBackend` (``params (B, K) -> native rest
+            mesh``), or None to pose canonical rest meshes given directly (:meth:`prepare_rest`).
         topology: the transfer from the backend's native topology; None when the backend
             already produces canonical meshes.
         procedural: procedural twist joints (paper 001): True for the sidecar shipped with
             unibody (upper arms, forearms, thighs, shins), or a parsed
             :class:`~unibody.procedural.ProceduralDefinition`. The pose stays 77 joints and
             the outputs 78 public joints; the expanded skeleton is internal.
+
+    Raises:
+        TypeError: ``identity`` is not an nn.Module implementing IdentityBackend (the message
+            names the missing members), or ``procedural`` is neither a bool nor a definition.
     """
 
     def __init__(
         self,
         rig: Rig,
-        identity: nn.Module | None = None,
+        identity: IdentityBackend | None = None,
         topology: TopologyTransfer | None = None,
         *,
         procedural: bool | ProceduralDefinition = False,
     ) -> None:
         super().__init__()
+        if identity is not None:
+            check_identity_backend(identity)
         self.twist: ProceduralTwist | None = None
         if procedural is not False:
             from .procedural import ProceduralDefinition, ProceduralTwist, canonical_definition
@@ -164,7 +172,11 @@ class BodyLayer(nn.Module):
 
     @classmethod
     def from_identity(
-        cls, identity: nn.Module, *, procedural: bool | ProceduralDefinition = False, dtype: torch.dtype = torch.float32
+        cls,
+        identity: IdentityBackend,
+        *,
+        procedural: bool | ProceduralDefinition = False,
+        dtype: torch.dtype = torch.float32,
     ) -> BodyLayer:
         """Any identity backend on a foreign topology (SMPL family, MHR, GarmentMeasurements, ...).
 
@@ -174,6 +186,7 @@ class BodyLayer(nn.Module):
         """
         from .registration import topology_transfer
 
+        check_identity_backend(identity)
         with torch.no_grad():
             template, faces = identity.template().double(), identity.faces()
         topology = topology_transfer(template, faces, name=identity.name)

@@ -15,9 +15,10 @@ objective is a sum over items).
 Parameter ranges are respected by construction: a parameter with two finite limits is
 ``lo + (hi - lo) sigmoid(z)``, one with a single finite limit ``lo + softplus(z)`` (or
 ``hi - softplus(z)``), an unbounded one is ``z`` itself; the optimiser works on ``z``.
-Limits come from the backend's ``param_limits()`` when it has one (MHR bone scales); Anny's
-phenotypes lie in [0, 1] and its local changes in [-1, 1]; any other backend is unbounded.
-Units: metres.
+Limits are the backend's ``param_bounds`` (:class:`~unibody.identity.base.IdentityBackend`):
+Anny's phenotypes in [0, 1] and local changes in [-1, 1], the PCA's coefficients within
++-10 sigma_0 / sigma_k, MHR's bone scales within the file's limits; SMPL and
+GarmentMeasurements are unbounded. Units: metres.
 """
 
 from __future__ import annotations
@@ -28,10 +29,9 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from torch import nn
-
 from ._checks import check_finite, check_like, check_shape
 from .body import BodyLayer
+from .identity.base import IdentityBackend
 
 __all__ = ["IdentityFit", "fit_identity", "param_limits"]
 
@@ -61,26 +61,23 @@ class IdentityFit:
     lbfgs_steps: int
 
 
-def param_limits(identity: nn.Module) -> torch.Tensor:
+def param_limits(identity: IdentityBackend) -> torch.Tensor:
     """(K, 2) [min, max] of each identity parameter (+-inf where unbounded), float64 on CPU.
 
     Args:
-        identity: an identity backend (``num_params``, ``default_params``; optional ``param_limits()``).
-    """
-    from .identity.anny import PHENOTYPES, AnnyIdentity
+        identity: an identity backend; its ``param_bounds`` (None: all unbounded).
 
+    Raises:
+        ValueError: ``param_bounds`` is not None nor a pair of (K,) tensors.
+    """
     k = int(identity.num_params)
-    if hasattr(identity, "param_limits"):
-        limits = identity.param_limits().detach().to("cpu", torch.float64)
-        if tuple(limits.shape) != (k, 2):
-            raise ValueError(f"identity.param_limits(): expected shape ({k}, 2), got {tuple(limits.shape)}")
-        return limits
-    limits = torch.tensor([-math.inf, math.inf], dtype=torch.float64).repeat(k, 1)
-    if isinstance(identity, AnnyIdentity):
-        n = len(PHENOTYPES)
-        limits[:n] = torch.tensor([0.0, 1.0], dtype=torch.float64)
-        limits[n:] = torch.tensor([-1.0, 1.0], dtype=torch.float64)
-    return limits
+    bounds = identity.param_bounds
+    if bounds is None:
+        return torch.tensor([-math.inf, math.inf], dtype=torch.float64).repeat(k, 1)
+    shapes = [tuple(b.shape) if isinstance(b, torch.Tensor) else type(b).__name__ for b in bounds]
+    if len(shapes) != 2 or any(s != (k,) for s in shapes):
+        raise ValueError(f"identity.param_bounds: expected (lower, upper) of shape ({k},) each, got {shapes}")
+    return torch.stack([b.detach().to("cpu", torch.float64) for b in bounds], dim=1)
 
 
 class _Bounded:

@@ -8,6 +8,9 @@
 | ``mhr`` | 45 identity coefficients + bone scales | MHR LOD mesh | user folder (``rig.npz``, ``lod{N}.npz``) |
 | ``garment`` | PCA coefficients | GarmentMeasurements mean mesh | user folder (``point.pca``, ``mean.obj``) |
 
+Every backend implements :class:`~unibody.identity.base.IdentityBackend` (``name``,
+``param_names``, ``num_params``, ``param_bounds``, ``default_params``, ``forward``,
+``template``, ``faces``); :class:`~unibody.body.BodyLayer` accepts nothing else.
 Backends on a foreign topology reach the canonical mesh through a
 :class:`~unibody.topology.TopologyTransfer` (see :mod:`unibody.registration`).
 """
@@ -17,9 +20,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from torch import nn
-
 from .anny import PHENOTYPES, AnnyIdentity
+from .base import IdentityBackend
 from .garment import GarmentIdentity
 from .mhr import MHRIdentity
 from .pca import PCAIdentity
@@ -28,6 +30,7 @@ from .smpl import SMPLIdentity
 __all__ = [
     "AnnyIdentity",
     "GarmentIdentity",
+    "IdentityBackend",
     "MHRIdentity",
     "PCAIdentity",
     "PHENOTYPES",
@@ -41,7 +44,7 @@ BACKENDS: tuple[str, ...] = ("anny", "pca", "smpl", "mhr", "garment")
 ENV_VARS = {"smpl": "UNIBODY_SMPL_FILE", "mhr": "UNIBODY_MHR_DIR", "garment": "UNIBODY_GARMENT_DIR"}
 
 
-def create(name: str, *, path: str | Path | None = None) -> nn.Module:
+def create(name: str, *, path: str | Path | None = None) -> IdentityBackend:
     """Build an identity backend by name (for the CLI); see ``BACKENDS``.
 
     Args:

@@ -78,9 +78,21 @@ class AnnyIdentity(nn.Module):
         params[:, : len(PHENOTYPES)] = 0.5
         return params
 
+    @property
+    def param_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(lower, upper)``, each (K,): phenotypes in [0, 1], local changes in [-1, 1]."""
+        ref = self.model.template_vertices
+        lower = ref.new_full((self.num_params,), -1.0)
+        lower[: len(PHENOTYPES)] = 0.0
+        return lower, ref.new_ones(self.num_params)
+
     def faces(self) -> torch.Tensor:
         """(F, 3) triangles of the native mesh."""
         return self.model.get_triangular_faces()
+
+    def template(self) -> torch.Tensor:
+        """(V, 3) m, the average identity's rest mesh, ``forward(default_params())[0]``."""
+        return self.forward(self.default_params())[0]
 
     def forward(self, params: torch.Tensor) -> torch.Tensor:
         """Rest meshes.

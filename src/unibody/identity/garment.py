@@ -207,6 +207,12 @@ class GarmentIdentity(nn.Module):
         """K: number of PCA components."""
         return len(self.param_names)
 
+    @property
+    def param_bounds(self) -> None:
+        """None: coefficients are unbounded (the upstream sliders span -3..3, but any finite
+        value is a shape of the linear model and :meth:`forward` accepts it)."""
+        return None
+
     def default_params(self, batch: int = 1) -> torch.Tensor:
         """(B, K) the mean body: every coefficient 0."""
         return self.mean.new_zeros(batch, self.num_params)

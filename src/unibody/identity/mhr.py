@@ -351,6 +351,13 @@ class MHRIdentity(nn.Module):
         inf[:, 0] = -math.inf
         return torch.cat([inf, self.scale_limits], dim=0)
 
+    @property
+    def param_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(lower, upper)``, each (K,): identity coefficients unbounded (+-inf), bone scales
+        within the file's limits (:meth:`param_limits` as two vectors)."""
+        limits = self.param_limits()
+        return limits[:, 0], limits[:, 1]
+
     def faces(self) -> torch.Tensor:
         """(F, 3) triangles of the native mesh (long)."""
         return self.face_indices

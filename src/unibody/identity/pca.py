@@ -291,6 +291,10 @@ class PCAIdentity(nn.Module):
         """(F, 3) triangles of the canonical mesh."""
         return self.face_ids
 
+    def template(self) -> torch.Tensor:
+        """(V, 3) m, the mean rest mesh (a copy; equal to ``forward(default_params())[0]``)."""
+        return self.mean.clone()
+
     def forward(self, coeffs: torch.Tensor) -> torch.Tensor:
         """Rest meshes.
 

@@ -189,6 +189,11 @@ class SMPLIdentity(nn.Module):
         """K: the number of shape coefficients (betas) taken by :meth:`forward`."""
         return len(self.param_names)
 
+    @property
+    def param_bounds(self) -> None:
+        """None: betas are unbounded (any finite value is a shape of the linear model)."""
+        return None
+
     def default_params(self, batch: int = 1) -> torch.Tensor:
         """(B, K) zeros: the mean shape ``v_template``."""
         if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
