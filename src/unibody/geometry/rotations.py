@@ -82,7 +82,6 @@ def skew(v: torch.Tensor) -> torch.Tensor:
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).unflatten(-1, (3, 3))
 
 
-
 def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula ``R = I + sin(t) U + (1 - cos t) U^2`` with ``U = [aa / t]_x``.
 
