@@ -4,24 +4,8 @@ Conventions: metres, Y up, bodies face +Z.  The ``"front"`` camera sits on +Z an
 looks toward -Z; ``"three_quarter"`` swings it 30 degrees about Y toward +X and
 raises it so that it looks 10 degrees down.  The camera is a pinhole with a
 30 degree vertical field of view, framed automatically around the meshes'
-bounding box.
-
-Pipeline (all vectorised):
-
-1. project vertices, cull back faces / degenerate / behind-camera triangles;
-2. z-pass: for blocks of triangles enumerate the pixels of each triangle's
-   bounding box (``np.repeat`` over box sizes; large triangles are cut into row
-   strips), keep those inside all three edge functions and scatter a 64-bit
-   key ``(quantised depth << 32) | face id`` into the z-buffer with
-   ``np.minimum.at`` -- the smallest key per pixel is the nearest fragment;
-3. deferred shading: for each covered pixel recompute barycentrics of the
-   winning face, interpolate vertex normals perspective-correctly and apply a
-   key light from the camera's upper left, a fill light, hemispheric ambient and
-   a faint specular term;
-4. an analytic ground plane (subtle checker, soft contact shadow, distance fog)
-   and a background gradient are composited through the same depth buffer;
-5. the image is rendered at ``supersample`` times the size and reduced with
-   Pillow's LANCZOS filter.
+bounding box. Vectorised rasterisation into a 64-bit depth-and-face-id buffer, deferred
+shading, an analytic ground plane, supersampling reduced by Pillow's LANCZOS filter.
 """
 
 from __future__ import annotations

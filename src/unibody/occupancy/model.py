@@ -1,25 +1,9 @@
 """The compositional occupancy network (paper 002 §4): local part frames and boxes, a shared
 PointNet encoder over each part's surface samples, a shared decoder, max composition.
 
-Differences from the reference implementation (reference_systems §1.4), each for speed or
-for determinism:
-
-- The encoder's surface samples are fixed barycentric points chosen once on the template
-  (area-weighted, seeded), so an encoding is a deterministic, differentiable function of the
-  posed vertices; the reference resamples on every encode.
-- Coordinates are normalised by each part's padded box (every part sees [-1, 1]^3), and the log
-  box size enters the part code, so newborns and adults share one input range.
-- A query is decoded only for the parts whose box contains it. The reference decodes every
-  (point, part) pair and multiplies by the box mask b_k; the result is the same, since a point
-  outside a box gets occupancy 0 from that part either way, and the box flag input is then
-  always 1 and dropped.
-- The part code, the one-hot part id and the log box size enter the decoder's first layer,
-  which is linear, so their contribution is one bias per part, computed at encoding time.
-- Besides the query's box coordinates the decoder sees local geometry: the offset to the
-  nearest of the part's encoder samples, that sample's normal (from its posed triangle) and the
-  signed distance to its tangent plane. The global part code alone is a bottleneck at the
-  millimetre scale near the surface; this local feature, the idea of IF-Nets and ConvONet, costs
-  one small nearest-neighbour search per evaluated (point, part) pair.
+Differs from the reference implementation for speed and determinism (fixed encoder samples,
+box-normalised coordinates, decoding only inside part boxes, a local-geometry input): see
+``docs/occupancy.md``.
 """
 
 from __future__ import annotations

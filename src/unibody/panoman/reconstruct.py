@@ -1,28 +1,14 @@
 """``g``: a mesh from its edge lengths and signed bending angles (paper 004 App. A, after Wang et al. 2017).
 
-Steps, per mesh (computed in float64 with NumPy/SciPy; the input dtype and device come back):
-
-1. Every face ``t`` has a frame ``R_t = (u_t, v_t, n_t)`` (columns): ``u`` along its first edge
-   ``v0 -> v1``, ``n`` its outward normal, ``v = n x u``.
-2. Every edge has a connection map ``Q_e = R_ζ^T R_τ`` (:func:`connection_maps`), computed from
-   the five edge lengths of its two faces and its bending angle only.
-3. Frames solve ``min sum_e ||R_τ - R_ζ Q_e||^2`` with face 0's frame fixed. The problem is
-   linear and splits into three right-hand sides (the rows of the frames) sharing one sparse
-   (3F x 3F) matrix; nearly consistent input is solved by preconditioned conjugate gradients
-   in the gauge of frames chained along a spanning tree, other input by one sparse Cholesky
-   factorisation per mesh (see :meth:`_FrameSolver.solve`). Each frame is then projected to
-   the closest rotation.
-4. Face edge vectors are ``R_t`` times their in-plane coordinates (from the lengths) and the
-   vertices solve ``min sum ||(x_b - x_a) - e_ab||^2`` with ``anchor_vertex`` fixed: a graph
-   Laplacian that depends on the topology only, factorised once per (topology, anchor) and cached.
+Face frames are solved from per-edge connection maps (one sparse least-squares problem, face 0
+fixed), then vertices from the framed edge vectors (a cached graph Laplacian, ``anchor_vertex``
+fixed); computed in float64, the input dtype and device come back. Steps: ``docs/panoman.md``.
 
 Gauge: ``reconstruct`` without ``reference`` returns face 0's frame equal to the identity and the
 anchor vertex at the origin; with ``reference`` the result is rigidly aligned to it (Kabsch over
 all vertices). ``reconstruct_rla`` without ``reference`` takes face 0's frame and the anchor's
-position from the rest mesh, so a region that does not move stays where it is at rest.
-
-Inconsistent input (e.g. blended RLA vectors) gives the least-squares mesh; edges of a face that
-break the triangle inequality give a degenerate (flat) triangle there.
+position from the rest mesh. Inconsistent input (e.g. blended RLA vectors) gives the
+least-squares mesh.
 """
 
 from __future__ import annotations

@@ -1,59 +1,20 @@
 """Sparse localized components of scalar-per-element data on a graph (paper 004 §4.2, §4.4).
 
-PanoMan describes body, face and hand motion by *sparse localized components* of relative
-edge-length (RL) and relative dihedral-angle (RA) vectors: six independent decompositions,
-each over N samples of D mesh edges. This module is that decomposition for any data with one
-scalar per element and a weighted element graph (for mesh edges: two edges are neighbours when
-they share a face, weighted by the distance between their midpoints). It follows the sparse
-localized deformation components of Neumann et al. 2013 (SIGGRAPH Asia) with one support
-radius per component chosen from a set of candidates, the adaptive support of Liu et al. 2019
-(both as cited by paper 004; the criteria and solvers below are this module's own).
+The decomposition behind PanoMan's body, face and hand components (one scalar per mesh edge;
+two edges are neighbours when they share a face), after Neumann et al. 2013 with an adaptive
+support radius per component (Liu et al. 2019). The steps (greedy initialisation, adaptive
+support, alternating box-constrained W and ADMM C updates) are in ``docs/panoman.md``.
 
 Notation:
     X (N, D): samples in rows; x̄ (D,) the mean; X_c = X − x̄.
     C (K, D): components, mostly zeros.  W (N, K): weights, held in the box |W_nk| ≤ 1.
     g_k(d): graph (Dijkstra) distance from element d to the centre of component k, metres.
     Λ_kd: locality weight of the support ramp (d_min, d_max) of component k: 0 for
-        g_k(d) ≤ d_min, rising linearly to 1 at d_max; beyond d_max the component is zero
-        (an infinite weight, enforced as a hard mask).
+        g_k(d) ≤ d_min, rising linearly to 1 at d_max; beyond d_max the component is zero.
     λ = sparsity · N · rms(X_c): the penalty scale.
 
-Objective (minimised over W and C):
+Objective (minimised over W and C; E never increases, nothing is random):
     E(W, C) = ½‖X_c − W C‖²_F + λ Σ_kd Λ_kd |C_kd|,   subject to |W_nk| ≤ 1.
-
-The weight box is the normalisation that stops the l1 term from being cheated by shrinking C
-while W grows. With it, an entry of a component whose weights have mean square m is cut to
-zero where the ramp reaches 1 when it is below ``sparsity · rms(X_c) / m``: ``sparsity`` is a
-dimensionless fraction of the data's RMS. Inside d_min a component is not penalised at all.
-
-Steps:
-    1. Greedy initialisation, one component at a time on the residual R (starts at X_c): the
-       centre is the element of largest residual energy ‖R_:,d‖; with u the centre's mode
-       (step 2), the component is c_d = R_:,dᵀ u on the support (the least-squares fit of R
-       there with weights u), scaled so that max |w| = 1, and c uᵀ is removed from R.
-    2. Adaptive support (``support=None``). The candidate ramps give nested balls around the
-       centre, sorted by d_max. The sample-space mode u (unit N-vector) is the leading one of
-       R on the smallest ball; a_d = R_:,dᵀ u is the mode's amplitude at element d. The chosen
-       ramp is the smallest whose d_max the mode has died out at: every element in the ring
-       between its d_max and the next candidate's has |a_d| ≤ ``adaptive_threshold`` · max
-       |a| on the smallest ball (the largest ramp when no ring passes). A pointwise test, unlike
-       an energy fraction, neither cuts a wide low tail (which holds little energy per element
-       but a lot in all) nor grows with the noise summed over a large area; fixing u at the
-       centre keeps a larger ball from switching to a neighbouring region's mode.
-    3. ``iterations`` alternations of
-       (a) W given C: the box-constrained least squares, one K-variable QP per sample. A
-           sample whose unconstrained solution lies in the box takes it (exact); the others
-           run an accelerated projected gradient in the diag(CCᵀ) metric, started from the
-           better of the clamped solution and the previous weights and kept only if better;
-       (b) C given W: ADMM on the split C = Z, ``admm_iterations`` steps, warm-started,
-           C-update (WᵀW + ρI) C = WᵀX_c + ρ(Z − U) with ρ = mean diag(WᵀW), Z-update a
-           per-element soft threshold λΛ/ρ inside the support and 0 outside. The sparse Z
-           replaces C only when it lowers E, so E never increases.
-       A last W step makes the returned weights optimal for the returned components.
-
-Every step works on (K, D), (K, N) and (K, K) arrays; the data enter only through the products
-C X_cᵀ and WᵀX_c, one of each per iteration. Components are signed so that their value at the
-centre is non-negative. Nothing is random: results depend only on the inputs.
 """
 
 from __future__ import annotations
