@@ -8,9 +8,8 @@ partner) and the reflected vertices lie within 0.16 um of their partners (float3
 the source file), so mirroring a mesh is a gather plus a sign flip:
 ``mirror(v)[i] = S v[index[i]]`` with S = diag(-1, 1, 1).
 
-The map depends on the bind mesh only. It is computed on first use and cached
-(:func:`functools.cache`): the exact nearest-neighbour search below takes ~0.1 s on one core,
-so nothing needs to be stored, and no asset can drift out of step with the rig.
+The map depends on the bind mesh only: it is computed on first use and cached
+(:func:`functools.cache`), so no asset can drift out of step with the rig.
 """
 
 from __future__ import annotations

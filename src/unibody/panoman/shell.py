@@ -19,8 +19,8 @@ the paper's ``l0 / S0`` divided by their median, so both shell terms are dimensi
 The solver is block-coordinate descent (§5.3): beta given V is a small linear least squares
 per decomposition (exact); V given beta is a Gauss–Newton step on all vertices with a
 backtracking line search. The Gauss–Newton matrix J^T J + C^T C is factorised once and
-reused for ``refactor_every`` steps (a chord method): the factorisation (~1 s for the
-18,056-vertex mesh) dominates a step, the reuse makes a step a pair of triangular solves.
+reused for ``refactor_every`` steps (a chord method): the factorisation dominates a step, the
+reuse makes a step a pair of triangular solves.
 Everything here is float64 numpy/scipy on one mesh.
 """
 
