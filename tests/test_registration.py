@@ -381,3 +381,23 @@ def test_an_unwritable_registration_cache_registers_in_memory(tmp_path, monkeypa
     with pytest.warns(assets.AssetWarning, match="cannot write the cache in .*registration.*building in memory"):
         transfer = topology_transfer(v, f, "ico")
     assert torch.equal(transfer.face_vertices, _fake_registration(len(v)).correspondence.face_vertices)
+
+
+def test_surface_index_is_exact_and_follows_refit():
+    from unibody.registration._closest import SurfaceIndex
+
+    v, f = (torch.from_numpy(a) for a in icosahedron())
+    g = torch.Generator().manual_seed(0)
+    pts = 2.0 * torch.randn(200, 3, generator=g, dtype=F64)
+    index = SurfaceIndex(v, f)
+    for verts in (v, 1.5 * v + torch.tensor([0.1, -0.2, 0.3], dtype=F64)):
+        index.refit(verts)
+        face, q, d = index.query(pts)
+        t = verts[f]
+        _, d2 = closest_point_on_triangles(pts[:, None], t[:, 0], t[:, 1], t[:, 2])
+        torch.testing.assert_close(d, d2.min(1).values.sqrt(), atol=1e-12, rtol=0)
+        _, d2_face = closest_point_on_triangles(pts, *verts[f[face]].unbind(1))
+        torch.testing.assert_close(d, d2_face.sqrt(), atol=1e-12, rtol=0)  # q lies on the returned face
+        torch.testing.assert_close((q - pts).norm(dim=-1), d, atol=1e-12, rtol=0)
+    area = 0.5 * torch.linalg.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0], dim=-1).norm(dim=-1).sum()
+    assert index.area() == pytest.approx(float(area), rel=1e-12)

@@ -126,8 +126,19 @@ def test_closest_point_degenerate_triangles(tri):
 # --------------------------------------------------------------------------- closest triangles
 
 
-@pytest.mark.parametrize("candidates", [32, 2])
-def test_closest_triangles_equals_brute_force(candidates):
+def _torch_search(pts, verts, faces, *, candidates, chunk):
+    """The CUDA path of closest_triangles, run on the CPU."""
+    from unibody.geometry.tetra import _closest_triangles_torch
+
+    return _closest_triangles_torch(pts, verts, faces, candidates, chunk)
+
+
+@pytest.mark.parametrize(
+    ("search", "candidates"),
+    [(closest_triangles, 32), (_torch_search, 32), (_torch_search, 2)],
+    ids=["igl", "torch-32", "torch-2"],
+)
+def test_closest_triangles_equals_brute_force(search, candidates):
     g = _gen(3)
     verts, faces = _soup(g)
     pts = torch.cat(
@@ -137,7 +148,7 @@ def test_closest_triangles_equals_brute_force(candidates):
             50.0 * torch.randn(8, 3, generator=g, dtype=F64),  # far away: fallback to all faces
         ]
     )
-    idx, q, d = closest_triangles(pts, verts, faces, candidates=candidates, chunk=256)
+    idx, q, d = search(pts, verts, faces, candidates=candidates, chunk=256)
     ref_idx, ref_d = _brute(pts, verts, faces)
     torch.testing.assert_close(d, ref_d, atol=1e-6, rtol=0)
     # The returned face really is at that distance and q is the point on it.
@@ -147,6 +158,20 @@ def test_closest_triangles_equals_brute_force(candidates):
     torch.testing.assert_close(q, q_ref, atol=1e-12, rtol=0)
     assert idx.dtype == torch.long and idx.shape == (pts.shape[0],)
     assert float((idx == ref_idx).double().mean()) > 0.99  # only exact ties may differ
+
+
+def test_closest_triangles_igl_equals_the_torch_search():
+    # The CPU answer (libigl) and the CUDA one (torch), on the same soup: distances to
+    # rounding, the same triangle except where two are equally close.
+    g = _gen(5)
+    verts, faces = _soup(g)
+    pts = torch.cat([1.4 * torch.rand(500, 3, generator=g, dtype=F64) - 0.2, verts + 1e-3])
+    idx, q, d = closest_triangles(pts, verts, faces)
+    t_idx, t_q, t_d = _torch_search(pts, verts, faces, candidates=32, chunk=2048)
+    torch.testing.assert_close(d, t_d, atol=1e-12, rtol=0)
+    torch.testing.assert_close(q, t_q, atol=1e-12, rtol=0)
+    tie = idx != t_idx
+    assert float(tie.double().mean()) < 0.01
 
 
 def test_closest_triangles_float32_and_validation():

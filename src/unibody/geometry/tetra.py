@@ -107,14 +107,15 @@ def closest_triangles(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Exact closest triangle of ``faces`` for each of ``points (N, 3)``.
 
-    Each triangle gets a bounding sphere (centroid, radius = farthest vertex), so
-    ``|p - centroid| - radius`` is a lower bound on its distance to ``p``. For a chunk
-    of points, the ``candidates`` triangles with the smallest bound (centroid
-    distances via ``torch.cdist``) are tested exactly. The result is accepted when
-    no other triangle's bound is below the best exact distance; rows that fail are
-    retried with 4x as many candidates, up to all triangles, so the answer is
-    always exact. Returns ``(face_index (N,) long, closest point (N, 3), distance (N,))``.
-    Runs without autograd: it is a precomputation whose useful output is the index.
+    On the CPU this is libigl's AABB tree (``igl.point_mesh_squared_distance``, in float64;
+    ~70x faster than the torch search on the 18,056 canonical vertices). On CUDA a torch
+    search runs on the device: bounding spheres prune the triangles to ``candidates`` per
+    point, tested exactly in chunks of ``chunk`` points, retried with more candidates until
+    the answer is provably the closest (``candidates`` and ``chunk`` only tune that path).
+    Where several triangles are equally close (a point nearest to a shared edge or vertex)
+    either may be returned. Returns ``(face_index (N,) long, closest point (N, 3),
+    distance (N,))`` in the dtype of ``points``, on the device of ``vertices``. Runs without autograd:
+    it is a precomputation whose useful output is the index.
     """
     sizes: dict[str, int] = {}
     check_shape(points, "N 3", name="points", sizes=sizes)
@@ -128,6 +129,35 @@ def closest_triangles(
         raise ValueError("faces: expected at least one triangle, got 0")
     if candidates < 1 or chunk < 1:
         raise ValueError(f"candidates/chunk: expected >= 1, got {candidates}/{chunk}")
+    if vertices.device.type != "cpu":
+        return _closest_triangles_torch(points, vertices, faces, candidates, chunk)
+    import igl  # a compiled extension: loaded on first use only
+
+    # Centred on the mesh (as the torch path) so rounding stays at the scale of the body.
+    v = vertices.detach().to(torch.float64)
+    origin = v.mean(0)
+    sq, face, q = igl.point_mesh_squared_distance(
+        np.ascontiguousarray((points.detach().to(device="cpu", dtype=torch.float64) - origin).numpy()),
+        np.ascontiguousarray((v - origin).numpy()),
+        np.ascontiguousarray(faces.detach().cpu().numpy().astype(np.int64, copy=False)),
+    )
+    dist = torch.from_numpy(sq).sqrt().to(points.dtype)
+    return torch.from_numpy(face), (torch.from_numpy(q) + origin).to(points.dtype), dist
+
+
+def _closest_triangles_torch(
+    points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor, candidates: int, chunk: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`closest_triangles` in torch (the CUDA path).
+
+    Each triangle gets a bounding sphere (centroid, radius = farthest vertex), so
+    ``|p - centroid| - radius`` is a lower bound on its distance to ``p``. For a chunk
+    of points, the ``candidates`` triangles with the smallest bound (centroid
+    distances via ``torch.cdist``) are tested exactly. The result is accepted when
+    no other triangle's bound is below the best exact distance; rows that fail are
+    retried with 4x as many candidates, up to all triangles, so the answer is
+    always exact.
+    """
     faces = faces.to(device=vertices.device, dtype=torch.long)
     points = points.to(vertices.device)
     n_faces = faces.shape[0]

@@ -205,7 +205,6 @@ def nonrigid_icp(
     src_samples: tuple[torch.Tensor, torch.Tensor] | None,
     settings: IcpSettings,
     *,
-    template_labels: torch.Tensor | None = None,
     log: list[str] | None = None,
 ) -> torch.Tensor:
     """Deform ``x0 (V, 3)`` onto the source surface.
@@ -219,7 +218,6 @@ def nonrigid_icp(
         src_samples: ``(points (S, 3), normals (S, 3))`` source surface samples for the
             source -> template term, or None to skip it.
         settings: schedule and weights.
-        template_labels: (F,) cluster labels for the template's surface index (computed when None).
         log: when given, one progress line per iteration is appended.
 
     Returns:
@@ -231,10 +229,9 @@ def nonrigid_icp(
     lap, deg = _laplacian(edges, weight, n)
     area = vertex_areas(x0, faces)
     face_ok = data[faces].all(1)
-    tpl_index = SurfaceIndex(x0, faces, labels=template_labels) if src_samples is not None else None
+    tpl_index = SurfaceIndex(x0, faces) if src_samples is not None else None
     if src_samples is not None:
-        src_total = float(source.tri_sorted.new_tensor(0.0) + _surface_area(source))
-        src_area = src_total / src_samples[0].shape[0]
+        src_area = source.area() / src_samples[0].shape[0]
     x = x0.clone()
     rot = None
     reject = torch.zeros(n, dtype=torch.bool)
@@ -308,8 +305,3 @@ def _drop_rejected(rev, reject: torch.Tensor):
     m = mats[keep]
     rhs = sub.t() @ (m @ pts[keep, :, None]).squeeze(-1)
     return sub, m, rhs
-
-
-def _surface_area(index: SurfaceIndex) -> float:
-    t = index.tri_sorted
-    return float(0.5 * torch.linalg.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0], dim=-1).norm(dim=-1).sum())

@@ -389,7 +389,6 @@ class _Stages:
             fn,
             (spts, fn[sfi]),
             c.icp,
-            template_labels=self.template.cluster_labels,
         )
 
     def project(self) -> None:

@@ -24,7 +24,6 @@ import torch
 from ..geometry.kinematics import forward_kinematics
 from ..geometry.rotations import axis_angle_to_matrix
 from ..rig import Rig
-from ._closest import cluster_triangles
 
 __all__ = ["Template", "TemplateParams"]
 
@@ -116,11 +115,6 @@ class Template:
         """``s R_g x + t`` for points ``(..., 3)``."""
         r = axis_angle_to_matrix(p.rot)
         return torch.exp(p.log_scale) * x @ r.transpose(-1, -2) + p.transl
-
-    @cached_property
-    def cluster_labels(self) -> torch.Tensor:
-        """(F,) surface-index clusters of the template triangles, computed once on the bind mesh."""
-        return cluster_triangles(self.vertices, self.faces)
 
     @cached_property
     def finger_pairs(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
