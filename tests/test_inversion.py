@@ -292,3 +292,41 @@ def test_float32_absurd_vertex_is_refused_not_linalg_error(anny_layer64):
             PoseInverter(layer).invert(target, prepared)
     finally:
         anny_layer64.double()
+
+
+def test_articulated_jacobian_is_translation_and_cross_products():
+    """J [t; w_1..w_S] = t + sum_s w_s x q_s: the first-order motion of every point."""
+    from unibody._gauss_newton import articulated_jacobian
+
+    gen = torch.Generator().manual_seed(7)
+    q = torch.randn(2, 5, 3, 3, generator=gen, dtype=torch.float64)  # (B, N, S, 3)
+    q[:, 1, 2] = 0.0  # joint 2 does not move point 1: its pair is left out below
+    t, w = torch.randn(2, 3, generator=gen, dtype=torch.float64), torch.randn(2, 3, 3, generator=gen, dtype=torch.float64)
+    point, slot = torch.arange(5).repeat_interleave(3), torch.arange(3).repeat(5)
+    keep = ~((point == 1) & (slot == 2))  # an unlisted pair gets a zero block, as a zero arm does
+    jac = articulated_jacobian(q.reshape(2, 15, 3)[:, keep], point[keep], slot[keep], 5, 3)
+    assert jac.shape == (2, 5, 3, 12)
+    moved = (jac @ torch.cat([t, w.flatten(1)], 1)[:, None, :, None]).squeeze(-1)
+    expected = t[:, None] + torch.linalg.cross(w[:, None].expand(-1, 5, -1, -1), q, dim=-1).sum(2)
+    torch.testing.assert_close(moved, expected, rtol=0, atol=1e-12)
+    assert bool((jac[:, 1, :, 9:] == 0).all())
+
+
+def test_rotate_joints_turns_the_world_frame(anny_layer64):
+    """After the update the joint's world rotation is exp(w) W_k, its parent's unchanged."""
+    from unibody._gauss_newton import rotate_joints
+    from unibody.geometry.kinematics import forward_kinematics
+    from unibody.geometry.rotations import axis_angle_to_matrix
+
+    layer = anny_layer64
+    gen = torch.Generator().manual_seed(8)
+    # Exact rotations (the session's layer may have been cast to float32 and back by another test).
+    local = axis_angle_to_matrix(0.3 * torch.randn(2, layer.num_joints, 3, generator=gen, dtype=torch.float64))
+    offsets = torch.randn(2, layer.num_joints, 3, generator=gen, dtype=torch.float64)
+    world, _ = forward_kinematics(layer.rig_tree, local, offsets)
+    joints = torch.tensor([13, 69])  # LeftArm, LeftShin: one solved joint per chain
+    w = 0.2 * torch.randn(2, 2, 3, generator=gen, dtype=torch.float64)
+    new = local.index_copy(1, joints, rotate_joints(local, world, joints, layer.parents, w))
+    world_new, _ = forward_kinematics(layer.rig_tree, new, offsets)
+    torch.testing.assert_close(world_new[:, joints], axis_angle_to_matrix(w) @ world[:, joints], rtol=0, atol=1e-12)
+    torch.testing.assert_close(world_new[:, layer.parents[joints]], world[:, layer.parents[joints]], rtol=0, atol=0)

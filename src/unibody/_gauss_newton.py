@@ -1,14 +1,17 @@
-"""Gauss-Newton refinement of all joint rotations at once (used by :mod:`unibody.inversion`).
+"""Articulated Gauss-Newton: the shared Jacobian of skinned points, and the refinement of
+all joint rotations at once used by :mod:`unibody.inversion`.
 
-Parameters per frame: the Hips translation and, for each skinned joint k, a world-frame
+Parameters per frame: the Hips translation and, for each solved joint k, a world-frame
 rotation increment w_k about the joint's position g_k. Rotating joint k rigidly moves the
-part of every vertex that its subtree skins, so to first order
+part of every point that its subtree skins, so to first order
 
     p_i(w, d) = p_i + d + sum_k w_k x q_ik,     q_ik = sum_{m in subtree(k)} w_im (M_m v_i - g_k),
 
-and the Jacobian block of vertex i and joint k is -[q_ik]_x. The normal equations are
-formed on a fixed seeded sample of vertices and solved per frame (Cholesky with a small
-Levenberg damping); increments are applied as local rotations R_k <- R_p^T exp(w_k) R_p R_k.
+and the Jacobian block of point i and joint k is -[q_ik]_x (:func:`articulated_jacobian`);
+increments are applied as local rotations R_k <- R_p^T exp(w_k) R_p R_k
+(:func:`rotate_joints`). Both are shared with the marker solver (:mod:`unibody.mocap`).
+The inversion's refinement forms the normal equations on a fixed seeded sample of vertices
+and solves them per frame (Cholesky with a small Levenberg damping).
 """
 
 from __future__ import annotations
@@ -18,12 +21,55 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .geometry.rotations import axis_angle_to_matrix
+from .geometry.rotations import axis_angle_to_matrix, skew
 
 if TYPE_CHECKING:
     from .body import BodyLayer, PreparedIdentity
 
-__all__ = ["GaussNewtonData", "gauss_newton_data", "gauss_newton"]
+__all__ = ["GaussNewtonData", "articulated_jacobian", "gauss_newton", "gauss_newton_data", "rotate_joints"]
+
+
+def articulated_jacobian(
+    q: torch.Tensor, point: torch.Tensor, slot: torch.Tensor, num_points: int, num_joints: int
+) -> torch.Tensor:
+    """Jacobian of skinned points with respect to the translation and world rotation increments.
+
+    Args:
+        q: (B, P, 3) m, moment arms of P (point i, solved joint s) pairs,
+            q_is = sum_{m in subtree(s)} w_im (M_m v_i) - (sum_{m in subtree(s)} w_im) g_s.
+        point: (P,) i of each pair, in [0, N).
+        slot: (P,) s of each pair, in [0, S); a pair that is not listed (the joint's subtree
+            does not skin the point) has a zero block.
+        num_points: N.
+        num_joints: S, the solved joints.
+
+    Returns:
+        (B, N, 3, 3 + 3S): d x_i / d (t, w_1, ..., w_S) = [I, -[q_i1]_x, ..., -[q_iS]_x].
+    """
+    b = q.shape[0]
+    jac = q.new_zeros(b, num_points, 3, 1 + num_joints, 3)
+    jac[:, :, :, 0] = torch.eye(3, dtype=q.dtype, device=q.device)
+    # Advanced indices split by a slice put the pair axis first: (P, B, 3, 3). Filling only the
+    # listed pairs keeps sparse incidences cheap (the inversion's 1,500 vertices x 60 joints).
+    jac[:, point, :, 1 + slot] = -skew(q).transpose(0, 1)
+    return jac.reshape(b, num_points, 3, 3 + 3 * num_joints)
+
+
+def rotate_joints(
+    local: torch.Tensor, world_rot: torch.Tensor, joints: torch.Tensor, parents: torch.Tensor, increments: torch.Tensor
+) -> torch.Tensor:
+    """Local rotations of ``joints`` after world-frame increments: R_k <- R_p^T exp(w_k) R_p R_k.
+
+    Args:
+        local: (B, J, 3, 3) absolute local rotations; world_rot: (B, J, 3, 3) their FK.
+        joints: (S,) solved joints; parents: (J,) parent of every joint.
+        increments: (B, S, 3) axis-angle w_k, world frame.
+
+    Returns:
+        (B, S, 3, 3) the new local rotations of ``joints``.
+    """
+    gp = world_rot[:, parents[joints]]
+    return gp.transpose(-1, -2) @ axis_angle_to_matrix(increments) @ gp @ local[:, joints]
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,12 +134,6 @@ def gauss_newton_data(layer: BodyLayer, num_samples: int, seed: int = 0) -> Gaus
     return GaussNewtonData(verts, joints, iv, ij, iw, pairs[:, 0], pairs[:, 1], entry_pair_t, entry_infl_t, pair_weight)
 
 
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    z = torch.zeros_like(v[..., 0])
-    x, y, w = v.unbind(-1)
-    return torch.stack([z, -w, y, w, z, -x, -y, x, z], -1).unflatten(-1, (3, 3))
-
-
 def gauss_newton(
     layer: BodyLayer,
     data: GaussNewtonData,
@@ -135,15 +175,10 @@ def gauss_newton(
         b = contrib.shape[0]
         q = contrib.new_zeros(b, d["pair_slot"].numel(), 3).index_add_(1, d["entry_pair"], contrib[:, d["entry_infl"]])
         q = q - pair_weight[:, None] * g_pos[:, d["joints"][d["pair_slot"]]]
-        jac = contrib.new_zeros(b, n, 3, 1 + k_count, 3)
-        jac[:, :, :, 0] = torch.eye(3, dtype=dtype, device=dev)
-        # Advanced indices split by a slice put the pair axis first: (P, B, 3, 3).
-        jac[:, d["pair_vertex"], :, 1 + d["pair_slot"]] = -_skew(q).transpose(0, 1)
-        jac = jac.reshape(b, 3 * n, 3 + 3 * k_count)
+        jac = articulated_jacobian(q, d["pair_vertex"], d["pair_slot"], n, k_count).reshape(b, 3 * n, 3 + 3 * k_count)
         jtj = jac.transpose(1, 2) @ jac
         scale = jtj.diagonal(dim1=1, dim2=2).mean(-1)
         rhs = jac.transpose(1, 2) @ (tgt - pred).reshape(b, 3 * n, 1)
-        gp = g_rot[:, layer.parents[d["joints"]]]
         done = torch.zeros_like(state[4], dtype=torch.bool)
         for _ in range(4):  # retries reuse J^T J: only the 3x3-block solve and a sampled LBS repeat
             # Cholesky: J^T J + lambda I is SPD. (Batched LU, torch.linalg.solve, fails on this
@@ -151,8 +186,8 @@ def gauss_newton(
             chol, info = torch.linalg.cholesky_ex(jtj + (lam * scale)[:, None, None] * eye)
             step = torch.cholesky_solve(rhs, chol).squeeze(-1)
             step = torch.where((info == 0)[:, None] & torch.isfinite(step), step, torch.zeros_like(step))
-            inc = axis_angle_to_matrix(step[:, 3:].view(b, k_count, 3))
-            cand_local = local.index_copy(1, d["joints"], gp.transpose(-1, -2) @ inc @ gp @ local[:, d["joints"]])
+            new = rotate_joints(local, g_rot, d["joints"], layer.parents, step[:, 3:].view(b, k_count, 3))
+            cand_local = local.index_copy(1, d["joints"], new)
             cand_transl = transl + step[:, :3]
             cand = evaluate(cand_local, cand_transl)
             ok = (cand[4] < state[4]) & ~done

@@ -231,9 +231,7 @@ class PoseInverter(nn.Module):
         vertices' influences: all of them, and only those inside the vertex's subtree.
         """
         parents = layer.rig_tree.parents
-        depth = [0] * len(parents)
-        for j in range(1, len(parents)):
-            depth[j] = depth[parents[j]] + 1
+        depth = {j: d for d, level in enumerate(layer.rig_tree.levels) for j in level}  # the tree's own depths
 
         def ancestor(j: int, d: int) -> int:
             while depth[j] > d:

@@ -261,7 +261,14 @@ def _direction(g: torch.Tensor, s: torch.Tensor, y: torch.Tensor, rho: torch.Ten
 def _lbfgs(
     objective: _Objective, z: torch.Tensor, iters: int, report: _Reporter, *, first: int, history: int = _HISTORY
 ) -> tuple[torch.Tensor, int]:
-    """Batched L-BFGS with a per-item backtracking line search; returns (z, iterations run)."""
+    """Batched L-BFGS with a per-item backtracking line search; returns (z, iterations run).
+
+    Kept instead of ``torch.optim.LBFGS``, which shares one memory and one line search across
+    the batch (items would no longer be independent). Measured on the tests' cases (one core,
+    same objective, history 30, strong Wolfe): Anny float64, 2 identities: this 14.6 s, 128
+    evaluations, max error 5e-14 m; torch 13.7 s, 122 evaluations, stalled at 1.66 mm (0.054
+    phenotype error) even with max_iter 400. PCA, 10 components: 1.6 vs 1.2 s, 0.026 vs 0.027 mm.
+    """
     b, k = z.shape
     s, y = z.new_zeros(b, history, k), z.new_zeros(b, history, k)
     rho = z.new_zeros(b, history)

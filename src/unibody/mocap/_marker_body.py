@@ -9,7 +9,7 @@ Notation (all float64 inside the solver, metres):
   ``x_m = sum_k w_mk (R_k p_m + t_k)`` with [R_k | t_k] = G_k T_k^-1.
 - Per frame the unknowns are the Hips translation and, for each solved body joint j, a
   world-frame rotation increment w_j about the joint position g_j (as in
-  :mod:`unibody._gauss_newton`): d x_m / d w_j = -[q_mj]_x with
+  :mod:`unibody._gauss_newton`, whose Jacobian and update this module uses): d x_m / d w_j = -[q_mj]_x with
   ``q_mj = sum_{k in subtree(j)} w_mk (R_k p_m + t_k) - (sum_{k in subtree(j)} w_mk) g_j``.
   Increments are applied as L_j <- W_p^T exp(w_j) W_p L_j (W_p: parent world rotation).
 - Pose prior on every solved joint but the Hips: ``(theta_j - mu_j) / sigma_j`` with theta_j
@@ -30,10 +30,11 @@ from functools import lru_cache
 
 import torch
 
+from .._gauss_newton import articulated_jacobian, rotate_joints
 from ..body import BodyLayer
 from ..geometry.kinematics import pose_transforms
 from ..geometry.procrustes import kabsch
-from ..geometry.rotations import _skew, axis_angle_to_matrix, matrix_to_axis_angle
+from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle, skew
 from ..poses import JOINT_RANGES
 from ..regions import dominant_joints
 
@@ -55,7 +56,7 @@ def _inv_left_jacobian(theta: torch.Tensor) -> torch.Tensor:
     small = t < 1e-4
     ts = torch.where(small, torch.ones_like(t), t.clamp_max(3.1))
     coef = torch.where(small, torch.full_like(t, 1.0 / 12.0), 1 / ts**2 - (1 + ts.cos()) / (2 * ts * ts.sin()))
-    k = _skew(theta)
+    k = skew(theta)
     eye = torch.eye(3, dtype=theta.dtype, device=theta.device)
     return eye - 0.5 * k + coef[..., None, None] * (k @ k)
 
@@ -248,11 +249,12 @@ class MarkerBody:
             return x, g_rot, None, None
         ws = w[:, None, :] * self.subtree[None]  # (M, S, J)
         q = torch.einsum("msk,bmkr->bmsr", ws, y) - ws.sum(-1)[None, :, :, None] * g_pos[:, None, self.solved]
-        b, m = x.shape[:2]
-        jr = -_skew(q).permute(0, 1, 3, 2, 4).reshape(b, m, 3, 3 * self.num_solved)
-        eye = torch.eye(3, dtype=x.dtype, device=x.device).expand(b, m, 3, 3)
+        m, s = q.shape[1:3]
+        point = torch.arange(m, device=q.device).repeat_interleave(s)  # every (marker, joint) pair
+        slot = torch.arange(s, device=q.device).repeat(m)
+        jac = articulated_jacobian(q.reshape(q.shape[0], m * s, 3), point, slot, m, s)
         blend = torch.einsum("mk,bkrc->bmrc", w, mats[..., :3])
-        return x, g_rot, torch.cat([eye, jr], -1), blend
+        return x, g_rot, jac, blend
 
     def prior(self, local: torch.Tensor, g_rot: torch.Tensor | None):
         """Pose-prior residuals (B, S-1, 3) and, given world rotations, their Jacobian blocks (B, S-1, 3, 3)."""
@@ -268,9 +270,7 @@ class MarkerBody:
     def apply(self, local, transl, g_rot, step):
         """Apply parameter steps (B, N) at the linearisation point (world rotations g_rot)."""
         b = step.shape[0]
-        inc = axis_angle_to_matrix(step[:, 3:].view(b, self.num_solved, 3))
-        gp = g_rot[:, self.parents[self.solved]]
-        new = gp.transpose(-1, -2) @ inc @ gp @ local[:, self.solved]
+        new = rotate_joints(local, g_rot, self.solved, self.parents, step[:, 3:].view(b, self.num_solved, 3))
         # One Newton-Schulz step, R (3I - R^T R) / 2: rounding errors would otherwise compound
         # from frame to frame through the warm starts (measured: 1e-3 after 100 frames).
         eye = torch.eye(3, dtype=new.dtype, device=new.device)
