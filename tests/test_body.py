@@ -381,8 +381,11 @@ class _NotABackend(torch.nn.Module):
 
 
 def test_identity_must_be_an_identity_backend(rig):
-    with pytest.raises(TypeError, match=r"identity: expected an identity backend .* got _NotABackend, which lacks "
-                       r"param_names, param_bounds, default_params, template, faces$"):
+    with pytest.raises(
+        TypeError,
+        match=r"identity: expected an identity backend .* got _NotABackend, which lacks "
+        r"param_names, param_bounds, default_params, template, faces$",
+    ):
         BodyLayer(rig, _NotABackend())
     with pytest.raises(TypeError, match=r"got str, which is not a torch.nn.Module and lacks name, param_names"):
         BodyLayer(rig, "anny")

@@ -301,7 +301,10 @@ def test_articulated_jacobian_is_translation_and_cross_products():
     gen = torch.Generator().manual_seed(7)
     q = torch.randn(2, 5, 3, 3, generator=gen, dtype=torch.float64)  # (B, N, S, 3)
     q[:, 1, 2] = 0.0  # joint 2 does not move point 1: its pair is left out below
-    t, w = torch.randn(2, 3, generator=gen, dtype=torch.float64), torch.randn(2, 3, 3, generator=gen, dtype=torch.float64)
+    t, w = (
+        torch.randn(2, 3, generator=gen, dtype=torch.float64),
+        torch.randn(2, 3, 3, generator=gen, dtype=torch.float64),
+    )
     point, slot = torch.arange(5).repeat_interleave(3), torch.arange(3).repeat(5)
     keep = ~((point == 1) & (slot == 2))  # an unlisted pair gets a zero block, as a zero arm does
     jac = articulated_jacobian(q.reshape(2, 15, 3)[:, keep], point[keep], slot[keep], 5, 3)

@@ -134,11 +134,13 @@ def test_param_limits(anny32, pca32):
     assert torch.equal(param_limits(_Limited((own[:, 0], own[:, 1]))), own.double())
     unbounded = param_limits(_Limited(None))
     assert bool((unbounded[:, 0] == -math.inf).all() & (unbounded[:, 1] == math.inf).all())
-    with pytest.raises(ValueError, match=r"identity.param_bounds: expected \(lower, upper\) of shape \(3,\) each, got \[\(3, 3\), \(3,\)\]"):
+    with pytest.raises(
+        ValueError,
+        match=r"identity.param_bounds: expected \(lower, upper\) of shape \(3,\) each, got \[\(3, 3\), \(3,\)\]",
+    ):
         param_limits(_Limited((torch.zeros(3, 3), torch.zeros(3))))
     with pytest.raises(ValueError, match=r"identity.param_bounds: expected .* got \[\(3,\)\]"):
         param_limits(_Limited((torch.zeros(3),)))
-
 
 
 def test_bad_input_errors(anny32):
