@@ -267,7 +267,7 @@ def stability(layer, finger, gen, args) -> None:
     step_truth = rotation_angle(truth[1:].transpose(-1, -2) @ truth[:-1])
     shoulder = torch.tensor([layer.joint_names.index(n) for n in ("LeftShoulder", "RightShoulder")])
     dominant = dominant_joints(
-        layer._skin_vertex, layer._skin_joint, layer.skin_weight, layer.num_vertices, layer.num_joints
+        layer.skinning.vertex, layer.skinning.joint, layer.skinning.weight, layer.num_vertices, layer.num_joints
     )
     shoulder_v = torch.isin(dominant, shoulder)
     observable = PoseInverter(layer).observable

@@ -5,10 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from hypothesis import HealthCheck, settings
 
 from unibody.rig import Rig
-
-from hypothesis import HealthCheck, settings
 
 # Property-based tests (tests/fuzz): seeded and bounded so the default suite stays fast; the long
 # run is `pytest tests/fuzz --hypothesis-profile=long`.

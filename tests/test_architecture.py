@@ -45,7 +45,7 @@ def private(small_rig) -> set[str]:
 
 def test_private_names_are_bodylayers_own(private):
     # Registered buffers, private methods and the transitional alias are all found ...
-    assert {"_skin_vertex", "_skin_joint", "_skin_w_crow", "_local_rotations", "_check_extent"} <= private
+    assert {"_skin_vertex", "_skin_joint", "_skin_w_crow", "_check_extent"} <= private
     # ... and nn.Module's own private machinery is not.
     assert not private & {"_buffers", "_modules", "_parameters", "_apply", "_call_impl", "_version"}
 
@@ -64,7 +64,7 @@ def test_no_private_bodylayer_member_outside_body(private):
     ("source", "expected"),
     [
         ("w = layer._skin_vertex\n", [(1, "_skin_vertex")]),
-        ("x = 1\nlocal = body.layer._local_rotations(pose, False)\n", [(2, "_local_rotations")]),
+        ("x = 1\nok = body.layer._check_extent(rest)\n", [(2, "_check_extent")]),
         ("v = getattr(layer, '_skin_w_crow')\n", [(1, "_skin_w_crow")]),
         ("s = layer.skinning\nr = layer.local_rotations(pose)\n", []),
         ("m._buffers\nself._levels = 1\n", []),  # nn.Module's or another class's private names

@@ -133,7 +133,7 @@ def test_residual_is_the_replayed_latent_markers(layer, clean):
     rest[..., :3, :3], rest[..., :3, 3] = prep.rest_rotations, prep.rest_joints
     skin = out.transforms @ torch.linalg.inv(rest)  # G_k T_k^-1
     weights = torch.zeros(layer.num_vertices, layer.num_joints, dtype=torch.float64)
-    weights[layer._skin_vertex, layer._skin_joint] = layer.skin_weight
+    weights[layer.skinning.vertex, layer.skinning.joint] = layer.skinning.weight
     blend = torch.einsum("mk,tkij->tmij", weights[res.anchors], skin)
     model = (blend[..., :3, :3] @ res.latent.double()[:, :, None]).squeeze(-1) + blend[..., :3, 3]
     dist = (model - points.double()).norm(dim=-1)

@@ -125,11 +125,11 @@ def test_load_rejects_other_files(tmp_path):
 
 def test_analytic_ik_reproduces_joint_positions(layer, bodies):
     alpha, prep, pose, _ = bodies
-    local = layer._local_rotations(pose, absolute=False)
+    local = layer.local_rotations(pose, absolute=False)
     _, joints, _ = layer.skin_transforms(prep, local, torch.zeros(2, 3, dtype=F64))
     recovered = _pose_from_joints(layer, prep, joints[:, 1:])
     _, again, _ = layer.skin_transforms(
-        prep, layer._local_rotations(recovered, absolute=False), torch.zeros(2, 3, dtype=F64)
+        prep, layer.local_rotations(recovered, absolute=False), torch.zeros(2, 3, dtype=F64)
     )
     assert (again - joints).norm(dim=-1).max() < 1e-8
 

@@ -303,10 +303,6 @@ class BodyLayer(nn.Module):
         eye = torch.eye(3, dtype=rot.dtype, device=rot.device).expand(rot.shape[0], 1, 3, 3)
         return torch.cat([eye, rot], dim=1)
 
-    def _local_rotations(self, pose: torch.Tensor, absolute: bool) -> torch.Tensor:
-        # Transitional: tests/test_panoman_model.py still calls it; use local_rotations.
-        return self.local_rotations(pose, absolute=absolute)
-
     def _worst(self, bad: torch.Tensor, score: torch.Tensor) -> tuple[int, int, str]:
         """(batch, pose index, description) of the bad entry with the largest ``score``."""
         worst = int(torch.where(bad, score, -1.0).flatten().argmax())
