@@ -34,8 +34,8 @@ import time
 import torch
 
 from unibody import BodyLayer, Rig
+from unibody.fitting.inversion import InversionConfig, PoseInverter
 from unibody.geometry.rotations import axis_angle_to_matrix, rotation_angle
-from unibody.inversion import InversionConfig, PoseInverter
 from unibody.regions import REGIONS, dominant_joints, vertex_regions
 
 METHODS = {

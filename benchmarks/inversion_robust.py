@@ -18,7 +18,7 @@ import time
 import torch
 
 from unibody import BodyLayer
-from unibody.inversion import PRESETS, PoseInverter
+from unibody.fitting.inversion import PRESETS, PoseInverter
 
 
 def main() -> None:

@@ -40,7 +40,7 @@ from unibody.occupancy import BodyOccupancy, resolve_self_intersections
 from unibody.occupancy import data as occ_data
 from unibody.occupancy.metrics import part_intersecting_pairs, part_intersections
 from unibody.occupancy.train import iou
-from unibody.poses import sample_poses
+from unibody.synth.poses import sample_poses
 
 CURVE_STEPS = (0, 5, 10, 20, 30, 50, 75, 100, 150, 200)
 
@@ -340,7 +340,7 @@ def section_scene(occ: BodyOccupancy, steps: int) -> None:
 
 
 def _panel(meshes, label: str, size: int = 420) -> np.ndarray:
-    from unibody.render import render_image
+    from unibody.viz.render import render_image
 
     img = Image.fromarray(render_image(meshes, width=size, height=size, view="front", ground_y=None))
     ImageDraw.Draw(img).text((10, 8), label, fill=(20, 20, 20))
@@ -348,7 +348,7 @@ def _panel(meshes, label: str, size: int = 420) -> np.ndarray:
 
 
 def _split(vertices: torch.Tensor, faces: torch.Tensor, red: torch.Tensor):
-    from unibody.render import MeshSpec
+    from unibody.viz.render import MeshSpec
 
     v = vertices.detach().cpu().numpy()
     return [MeshSpec(v, faces[~red].numpy(), (0.80, 0.66, 0.58)), MeshSpec(v, faces[red].numpy(), (0.85, 0.1, 0.1))]
@@ -356,7 +356,7 @@ def _split(vertices: torch.Tensor, faces: torch.Tensor, red: torch.Tensor):
 
 def section_figure(occ: BodyOccupancy, path: str, steps: int) -> None:
     """Held-out body, its marching-cubes occupancy surface, a self-intersecting pose before/after."""
-    from unibody.render import MeshSpec
+    from unibody.viz.render import MeshSpec
 
     out, faces = occ_data.pose_bodies(1, seed=1, index=3000)
     verts, tris = occ.extract_mesh(out, resolution=128)[0]

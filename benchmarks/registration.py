@@ -151,7 +151,7 @@ def _robustness(results: dict, trials: int, seed: int, config) -> None:
 def _render(results: dict, folder: Path, rig: Rig) -> None:
     from unibody import BodyLayer, joint_index
     from unibody.geometry.tetra import quads_to_triangles
-    from unibody.render import MeshSpec, render_png
+    from unibody.viz.render import MeshSpec, render_png
 
     folder.mkdir(parents=True, exist_ok=True)
     layer = BodyLayer(rig, None, None).double()

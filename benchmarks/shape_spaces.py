@@ -21,7 +21,7 @@ repeated on that subset, so that they compare like for like with the fitted rows
 Fitted rows (backends whose shape space is not a linear basis on the canonical mesh): the
 first ``--fit-identities`` held-out meshes (default 50, to keep the default run under ~10
 minutes on one thread; the table's "held-out" column says how many) are fitted with
-:func:`unibody.shape_fit.fit_identity`, which minimises the mean squared per-vertex distance
+:func:`unibody.fitting.shape_fit.fit_identity`, which minimises the mean squared per-vertex distance
 to ``layer.repose_to_bind(layer.prepare_identity(params))`` through the whole differentiable
 pipeline (identity -> topology transfer -> skeleton fit -> repose), parameters kept in their
 ranges, from the backend's default parameters, float32, ``--fit-adam`` Adam steps (default 0)
@@ -64,9 +64,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import build_pca  # noqa: E402  (the training recipe, sampler and reposing, shared on purpose)
 
 from unibody import BodyLayer  # noqa: E402
+from unibody.fitting.shape_fit import fit_identity  # noqa: E402
 from unibody.identity import ENV_VARS, create  # noqa: E402
 from unibody.identity.pca import IPCAState, PCAIdentity, default_asset_path, ipca_finalize  # noqa: E402
-from unibody.shape_fit import fit_identity  # noqa: E402
 
 KS = (10, 32, 64, 128)
 USER_BACKENDS = ("smpl", "mhr", "garment")
@@ -165,7 +165,7 @@ def heldout_params(metadata: dict, count: int, seed: int, num_local: int) -> tup
 
 @dataclass(frozen=True)
 class FitSettings:
-    """How the fitted rows run :func:`unibody.shape_fit.fit_identity` (``batch``: identities per call)."""
+    """How the fitted rows run :func:`unibody.fitting.shape_fit.fit_identity` (``batch``: identities per call)."""
 
     adam: int
     lbfgs: int

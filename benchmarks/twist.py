@@ -25,8 +25,8 @@ from PIL import Image
 
 from unibody import BodyLayer
 from unibody.geometry.rotations import axis_angle_to_matrix
-from unibody.render import Camera, MeshSpec, render_image
 from unibody.rig import Rig
+from unibody.viz.render import Camera, MeshSpec, render_image
 
 # (label, segment start, segment end, twisted joint, plane range along the segment)
 CASES = (

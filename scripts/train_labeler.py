@@ -59,13 +59,13 @@ from pathlib import Path
 import torch
 
 from unibody._checks import check_device
-from unibody.io.motion import load_motion
 from unibody.mocap.corrupt import MocapBatch
 from unibody.mocap.labeler import Labeler, labeling_loss, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.orient import torso_template
 from unibody.mocap.pipeline import load_labeler
 from unibody.mocap.synthetic import POSE, SyntheticConfig, SyntheticMocap
+from unibody.motion import load_motion
 
 HEAD_BANDS = (("FHD", 10.0, 100.0), ("BHD", 110.0, 170.0))  # --head-bands: azimuths from the front, degrees
 

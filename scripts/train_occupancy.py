@@ -6,7 +6,7 @@ The defaults are the shipped recipe; the shipped file was written by
 ``OMP_NUM_THREADS=1 python scripts/train_occupancy.py --steps 5000 --eval-every 250`` (the same
 run: seed 0, 5,000 Adam steps, lr 1e-3 cosine to 1e-5; ~70 min on one core of a 2-vCPU AMD EPYC).
 Data recipe (``unibody.occupancy.data``): each step 8 posed bodies, PCA identities of pool 0
-(1,000 identities, 10 components, newborns to adults) in poses of ``unibody.poses.sample_poses``
+(1,000 identities, 10 components, newborns to adults) in poses of ``unibody.synth.poses.sample_poses``
 with procedural twist, and 256 queries per part (half uniform in the padded part box, half within
 N(0, 1 cm) of the part's surface) labelled by libigl's fast winding numbers.
 

@@ -17,7 +17,7 @@ import torch
 
 from unibody.cli import main
 from unibody.io.atomic import OutputError, atomic_path, check_output, output_lock, save_npz
-from unibody.io.motion import Motion, load_motion, save_motion
+from unibody.motion import Motion, load_motion, save_motion
 
 UNIBODY = [sys.executable, "-c", "import sys; from unibody.cli import main; sys.exit(main())"]
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from unibody.inversion import PRESETS, InversionConfig, PoseInverter
+from unibody.fitting.inversion import PRESETS, InversionConfig, PoseInverter
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +116,7 @@ def test_config_errors():
 
 def test_cli_invert_and_pose_round_trip(tmp_path, anny_layer64):
     from unibody.cli import main
-    from unibody.io.motion import load_motion
+    from unibody.motion import load_motion
 
     layer = anny_layer64
     params = np.array([0.5, 0.5, 0.5, 0.5, 0.5, 0.5], np.float32)
@@ -141,7 +141,7 @@ def test_cli_invert_and_pose_round_trip(tmp_path, anny_layer64):
 
 def test_cli_invert_resumes(tmp_path, anny_layer64, monkeypatch, capsys):
     from unibody.cli import main
-    from unibody.io.motion import load_motion
+    from unibody.motion import load_motion
 
     params = np.full(6, 0.5, np.float32)
     gen = torch.Generator().manual_seed(6)
@@ -296,7 +296,7 @@ def test_float32_absurd_vertex_is_refused_not_linalg_error(anny_layer64):
 
 def test_articulated_jacobian_is_translation_and_cross_products():
     """J [t; w_1..w_S] = t + sum_s w_s x q_s: the first-order motion of every point."""
-    from unibody._gauss_newton import articulated_jacobian
+    from unibody.fitting._gauss_newton import articulated_jacobian
 
     gen = torch.Generator().manual_seed(7)
     q = torch.randn(2, 5, 3, 3, generator=gen, dtype=torch.float64)  # (B, N, S, 3)
@@ -317,7 +317,7 @@ def test_articulated_jacobian_is_translation_and_cross_products():
 
 def test_rotate_joints_turns_the_world_frame(anny_layer64):
     """After the update the joint's world rotation is exp(w) W_k, its parent's unchanged."""
-    from unibody._gauss_newton import rotate_joints
+    from unibody.fitting._gauss_newton import rotate_joints
     from unibody.geometry.kinematics import forward_kinematics
     from unibody.geometry.rotations import axis_angle_to_matrix
 

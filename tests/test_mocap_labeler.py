@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-from unibody.io.motion import Motion, save_motion
 from unibody.mocap import labeler
 from unibody.mocap.corrupt import MocapBatch
 from unibody.mocap.labeler import Labeler, LabelerConfig, label_frames, labeling_loss, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.metrics import labeling_scores
 from unibody.mocap.synthetic import SyntheticConfig, SyntheticMocap
-from unibody.poses import sample_poses
+from unibody.motion import Motion, save_motion
+from unibody.synth.poses import sample_poses
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "train_labeler.py"
 

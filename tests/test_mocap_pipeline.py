@@ -13,7 +13,6 @@ import torch
 from unibody.body import BodyLayer
 from unibody.cli import main
 from unibody.geometry.rotations import axis_angle_to_matrix
-from unibody.io.motion import load_motion
 from unibody.mocap.c3d import MarkerSequence, read_markers, write_c3d
 from unibody.mocap.labeler import predict
 from unibody.mocap.layout import MarkerLayout, place_markers
@@ -21,6 +20,7 @@ from unibody.mocap.metrics import labeling_scores
 from unibody.mocap.pipeline import available_labelers, label_sequence, load_labeler
 from unibody.mocap.solve import unibody_to_lab
 from unibody.mocap.synthetic import POSE, SyntheticConfig, SyntheticMocap
+from unibody.motion import load_motion
 from unibody.rig import joint_index
 
 

@@ -17,7 +17,6 @@ import torch
 
 from unibody.body import BodyLayer
 from unibody.geometry.rotations import axis_angle_to_matrix
-from unibody.io.motion import load_motion, save_motion
 from unibody.mocap._marker_body import BODY_JOINTS, MarkerBody, Weights, _row_weights
 from unibody.mocap.layout import MarkerLayout, place_markers
 from unibody.mocap.solve import (
@@ -28,8 +27,9 @@ from unibody.mocap.solve import (
     solve_markers,
     unibody_to_lab,
 )
-from unibody.poses import sample_poses
+from unibody.motion import load_motion, save_motion
 from unibody.rig import joint_index
+from unibody.synth.poses import sample_poses
 
 EVALDATA = Path("/work/shared/evaldata")
 K = 16
@@ -52,7 +52,7 @@ def _motion(seed: int, tumble: bool, frames: int = 20):
     beta = torch.randn(1, K, generator=g, dtype=torch.float64)
     phase = 2 * math.pi * torch.linspace(0, 1, frames, dtype=torch.float64)
     pose = torch.zeros(frames, 77, 3, dtype=torch.float64)
-    # (joint, axis, offset, amplitude, phase shift): T-pose-relative, see unibody.poses.
+    # (joint, axis, offset, amplitude, phase shift): T-pose-relative, see unibody.synth.poses.
     for name, axis, off, amp, shift in (
         ("LeftArm", 2, -1.0, 0.6, 0.0),
         ("LeftArm", 1, 0.0, -0.3, 0.0),

@@ -10,8 +10,8 @@ import torch
 from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.mocap.layout import MarkerLayout, available_layouts, place_markers, vertex_normals
 from unibody.mocap.synthetic import POSE, SyntheticConfig, SyntheticMocap
-from unibody.poses import sample_poses
 from unibody.rig import joint_index
+from unibody.synth.poses import sample_poses
 
 
 def test_shipped_layouts():

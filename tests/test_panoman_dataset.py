@@ -7,7 +7,6 @@ import torch
 
 from unibody import BodyLayer
 from unibody.geometry.rotations import axis_angle_to_matrix, swing_twist
-from unibody.identity.expressions import FACIAL_ACTIONS, expression_basis, expression_reference
 from unibody.panoman.dataset import (
     FINGER_JOINTS,
     body_samples,
@@ -18,6 +17,7 @@ from unibody.panoman.dataset import (
     sample_expressions,
 )
 from unibody.rig import JOINT_NAMES, Rig, joint_index
+from unibody.synth.expressions import FACIAL_ACTIONS, expression_basis, expression_reference
 
 V = 18056
 

@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from conftest import icosahedron
-from unibody.render import Camera, MeshSpec, frame_camera, project, render_image, render_png
+from unibody.viz.render import Camera, MeshSpec, frame_camera, project, render_image, render_png
 
 
 def icosphere(subdivisions: int, radius: float = 1.0, centre=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:

@@ -1,4 +1,4 @@
-"""Identity fitting through the unified pipeline (unibody.shape_fit): recovery, limits, errors."""
+"""Identity fitting through the unified pipeline (unibody.fitting.shape_fit): recovery, limits, errors."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from unibody import BodyLayer, Rig
+from unibody.fitting.shape_fit import IdentityFit, _Bounded, _lbfgs, _Reporter, fit_identity, param_limits
 from unibody.identity import PHENOTYPES
-from unibody.shape_fit import IdentityFit, _Bounded, _lbfgs, _Reporter, fit_identity, param_limits
 
 
 @pytest.fixture(scope="module")

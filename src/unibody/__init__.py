@@ -5,8 +5,8 @@ rotations of joints 1..77, T-pose-relative by default (paper 001).
 """
 
 from .body import BodyLayer, BodyOutput, PreparedIdentity
+from .fitting.inversion import PRESETS, InversionConfig, InversionResult, PoseInverter
 from .identity import AnnyIdentity, GarmentIdentity, MHRIdentity, PCAIdentity, SMPLIdentity
-from .inversion import PRESETS, InversionConfig, InversionResult, PoseInverter
 from .rig import JOINT_NAMES, NUM_JOINTS, NUM_POSED, KinematicTree, Rig, joint_index
 from .skeleton import SkeletonTransfer
 from .topology import TopologyTransfer

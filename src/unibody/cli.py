@@ -150,7 +150,7 @@ def demo_layers(backends: list[str]) -> list[tuple[str, object, torch.Tensor]]:
 def run_demo(out_dir: Path, backends: list[str] | None = None) -> None:
     """Pose identities of one or more backends (default: five Anny bodies) in one pose; write GLB + PNG."""
     from .io.glb import MeshSpec, write_glb
-    from .render import render_png
+    from .viz.render import render_png
 
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"--out: expected a folder, got the file {out_dir}")
@@ -197,9 +197,9 @@ def run_invert(seq_path: Path, out: Path, preset: str, batch: int, force: bool =
     import numpy as np
 
     from .body import BodyLayer
-    from .inversion import PRESETS, PoseInverter
+    from .fitting.inversion import PRESETS, PoseInverter
     from .io.atomic import check_output, output_lock
-    from .io.motion import Motion, load_mesh_sequence, save_motion
+    from .motion import Motion, load_mesh_sequence, save_motion
 
     if preset not in PRESETS:
         raise UsageError(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
@@ -293,7 +293,7 @@ def run_pose(motion_path: Path, out: Path, procedural: bool = False, force: bool
 
     from .body import BodyLayer
     from .io.atomic import check_output, output_lock, save_npz
-    from .io.motion import load_motion
+    from .motion import load_motion
 
     out = check_output(out, inputs=[motion_path], suffixes=[".npz"], force=force)
     motion = _read(motion_path, load_motion)
@@ -390,10 +390,10 @@ def run_mocap_label(
 
 def run_mocap_solve(src: Path, out: Path, layout_name: str, up: str, png: Path | None, force: bool = False) -> None:
     from .io.atomic import atomic_path, check_output, output_lock
-    from .io.motion import save_motion
     from .mocap.c3d import read_markers
     from .mocap.layout import MarkerLayout
     from .mocap.pipeline import render_solution, solve_sequence
+    from .motion import save_motion
 
     out = check_output(out, inputs=[src], suffixes=[".npz"], force=force)
     if png is not None:

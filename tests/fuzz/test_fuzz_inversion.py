@@ -15,7 +15,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from unibody import BodyLayer
-from unibody.inversion import PRESETS, PoseInverter
+from unibody.fitting.inversion import PRESETS, PoseInverter
 
 
 @pytest.fixture(scope="module")

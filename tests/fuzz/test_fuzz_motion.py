@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from unibody.cli import main
-from unibody.io.motion import MOTION_FORMAT, Motion, load_mesh_sequence, load_motion, save_motion
+from unibody.motion import MOTION_FORMAT, Motion, load_mesh_sequence, load_motion, save_motion
 from unibody.rig import JOINT_NAMES
 
 FLOATS = st.sampled_from([0.0, 1.0, -1.0, 1e-30, 1e30, np.inf, -np.inf, np.nan, 30.0, 120.0])

@@ -27,7 +27,7 @@ class IdentityBackend(Protocol):
         param_bounds: ``(lower (K,), upper (K,))`` inclusive bounds in the backend's dtype,
             ``-inf`` / ``inf`` where a parameter is unbounded on that side; None when every
             parameter is unbounded. ``forward`` accepts any parameters within them, and
-            fitters (:func:`unibody.shape_fit.fit_identity`) keep to them.
+            fitters (:func:`unibody.fitting.shape_fit.fit_identity`) keep to them.
     """
 
     name: str

@@ -9,12 +9,12 @@ Notation (all float64 inside the solver, metres):
   ``x_m = sum_k w_mk (R_k p_m + t_k)`` with [R_k | t_k] = G_k T_k^-1.
 - Per frame the unknowns are the Hips translation and, for each solved body joint j, a
   world-frame rotation increment w_j about the joint position g_j (as in
-  :mod:`unibody._gauss_newton`, whose Jacobian and update this module uses): d x_m / d w_j = -[q_mj]_x with
+  :mod:`unibody.fitting._gauss_newton`, whose Jacobian and update this module uses): d x_m / d w_j = -[q_mj]_x with
   ``q_mj = sum_{k in subtree(j)} w_mk (R_k p_m + t_k) - (sum_{k in subtree(j)} w_mk) g_j``.
   Increments are applied as L_j <- W_p^T exp(w_j) W_p L_j (W_p: parent world rotation).
 - Pose prior on every solved joint but the Hips: ``(theta_j - mu_j) / sigma_j`` with theta_j
   the T-pose-relative axis-angle, mu_j the relaxed standing pose and sigma_j half the joint
-  range of :data:`unibody.poses.JOINT_RANGES`. A world increment acts on the relative
+  range of :data:`unibody.joint_limits.JOINT_RANGES`. A world increment acts on the relative
   rotation from the left by phi = O_p W_p^T w, so d theta / d w = J_l^-1(theta) O_p W_p^T.
 
 Every residual is divided by its standard deviation, so the cost is a sum of squares in
@@ -30,12 +30,12 @@ from functools import lru_cache
 
 import torch
 
-from .._gauss_newton import articulated_jacobian, rotate_joints
 from ..body import BodyLayer
+from ..fitting._gauss_newton import articulated_jacobian, rotate_joints
 from ..geometry.kinematics import pose_transforms
 from ..geometry.procrustes import kabsch
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle, skew
-from ..poses import JOINT_RANGES
+from ..joint_limits import JOINT_RANGES
 from ..regions import dominant_joints
 
 _LIMBS = ("Shoulder", "Arm", "ForeArm", "Hand", "Leg", "Shin", "Foot", "ToeBase")

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw
 
-from ..render import Camera, MeshSpec, frame_camera, project, render_image
+from ..viz.render import Camera, MeshSpec, frame_camera, project, render_image
 
 __all__ = ["render_markers"]
 

@@ -39,7 +39,7 @@ evaldata files' own labels the median residual falls and the mean rises a little
 
 **Pose prior.** Per joint and axis, ``(theta - mu) / sigma`` on the T-pose-relative axis-angle
 theta: mu is the relaxed standing pose and sigma half the joint range of
-:data:`unibody.poses.JOINT_RANGES` (at least 0.05 rad); none on the Hips. It is a diagonal
+:data:`unibody.joint_limits.JOINT_RANGES` (at least 0.05 rad); none on the Hips. It is a diagonal
 Gaussian standing in for MoSh's GMM pose prior: it fixes what the markers leave free (twist of
 segments with collinear markers, the split of a bend over Spine1/Spine2/Chest or Neck/Head).
 

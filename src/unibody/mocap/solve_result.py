@@ -1,4 +1,4 @@
-"""What the marker solve returns (:class:`SolveResult`) and its conversion to a :class:`~unibody.io.motion.Motion`."""
+"""What the marker solve returns (:class:`SolveResult`) and its conversion to a :class:`~unibody.motion.Motion`."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..io.motion import Motion
+from ..motion import Motion
 from .frames import check_fps
 
 __all__ = ["SolveResult"]

@@ -2,7 +2,7 @@
 
 Bodies come from the native PCA shape space (all sizes and ages it spans, children
 included; by default three quarters of them get an adult stature, as in most mocap), poses
-from :func:`unibody.poses.sample_poses` (uniform heading; fractions tumbling, with the legs
+from :func:`unibody.synth.poses.sample_poses` (uniform heading; fractions tumbling, with the legs
 together, with the arms moving alike) and, when motions are given (unibody motion files, e.g.
 AMASS sequences turned into canonical rotations by ``unibody invert``; the paper trains on
 AMASS), a fraction ``motion_prob`` from random frames of them turned to a uniform heading,
@@ -43,8 +43,8 @@ import torch
 from .._checks import check_finite, check_shape
 from ..body import BodyLayer, PreparedIdentity
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from ..poses import sample_poses
 from ..rig import Rig
+from ..synth.poses import sample_poses
 from .corrupt import MocapBatch, corrupt_frames
 from .layout import MarkerLayout, vertex_normals
 
@@ -129,7 +129,7 @@ class SyntheticConfig:
             extra markers come as tracking clusters (thigh and shank plates, foot sets, as in
             pyCGM's files): groups of ``cluster_size`` distinct extra-marker vertices within
             ``cluster_radius`` m of a random one on the mean rest mesh.
-        pose: keyword arguments of :func:`unibody.poses.sample_poses` (default :data:`POSE`).
+        pose: keyword arguments of :func:`unibody.synth.poses.sample_poses` (default :data:`POSE`).
         motion_prob: with ``motions`` (see :class:`SyntheticMocap`), the fraction of samples posed
             from a random motion frame instead of ``sample_poses``.
         spread: m, the Hips are placed uniformly in a square of this half-width (lab floor).
@@ -322,7 +322,7 @@ class SyntheticMocap:
         return torch.tensor(radii)
 
     def poses(self, batch: int, generator: torch.Generator) -> torch.Tensor:
-        """(B, 77, 3) poses: :func:`~unibody.poses.sample_poses`, of which a fraction ``motion_prob``
+        """(B, 77, 3) poses: :func:`~unibody.synth.poses.sample_poses`, of which a fraction ``motion_prob``
         is replaced by random frames of ``motions`` turned about the vertical through the Hips to
         a uniform heading (without motions, or with ``motion_prob`` 0, no further draws)."""
         pose = sample_poses(batch, generator, **self.config.pose)

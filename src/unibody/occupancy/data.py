@@ -1,7 +1,7 @@
 """Training and evaluation samples for the occupancy network (paper 002 §4, "Training").
 
-Bodies are PCA identities (newborns to adults; :func:`unibody.panoman.dataset.identity_pool`,
-pool 0 trains and pool 1 is held out) in poses from :func:`unibody.poses.sample_poses`, posed
+Bodies are PCA identities (newborns to adults; :func:`unibody.synth.identities.identity_pool`,
+pool 0 trains and pool 1 is held out) in poses from :func:`unibody.synth.poses.sample_poses`, posed
 by the float32 PCA layer with procedural twist. Ground truth is the generalized winding number
 of the posed mesh (libigl's fast winding numbers), which stays robust where LBS makes the mesh
 self-intersect. Every draw is a function of ``(seed, index)`` so that training can resume.
@@ -15,18 +15,16 @@ import numpy as np
 import torch
 
 from ..body import BodyLayer, BodyOutput
-from ..panoman.dataset import identity_pool
-from ..poses import keyed_generator, sample_poses
+from ..synth.identities import NUM_SHAPE, identity_pool
+from ..synth.poses import keyed_generator, sample_poses
 from .model import part_boxes
 from .parts import BodyParts
 
 __all__ = ["generator", "pose_bodies", "inside_mesh", "surface_points", "training_queries", "evaluation_points"]
 
-NUM_SHAPE = 10
-
 
 def generator(*key: object) -> torch.Generator:
-    """The random stream of ``key`` within the occupancy data (:func:`unibody.poses.keyed_generator`)."""
+    """The random stream of ``key`` within the occupancy data (:func:`unibody.synth.poses.keyed_generator`)."""
     return keyed_generator("occupancy", *key)
 
 

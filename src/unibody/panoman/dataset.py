@@ -1,7 +1,7 @@
 """PanoMan's training set H = H_B ∪ H_F ∪ H_H (paper 004 §4.3), synthesised from unibody bodies.
 
 Each mesh carries one kind of motion on a known identity, so its rest mesh r(V) is exact:
-``"body"`` (H_B, poses of :func:`unibody.poses.sample_poses` with procedural twist joints),
+``"body"`` (H_B, poses of :func:`unibody.synth.poses.sample_poses` with procedural twist joints),
 ``"face"`` (H_F, Anny's facial actions scaled by head size) and ``"hands"`` (H_H, finger
 rotations). Identities: the native PCA's first 10 components, N(0, 1) truncated to ±2 σ.
 
@@ -28,9 +28,11 @@ import torch
 
 from ..body import BodyLayer, PreparedIdentity
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from ..identity.expressions import FACIAL_ACTIONS, expression_basis, expression_reference
-from ..poses import JOINT_RANGES, keyed_generator, sample_poses
+from ..joint_limits import JOINT_RANGES
 from ..rig import JOINT_NAMES, Rig, joint_index
+from ..synth.expressions import FACIAL_ACTIONS, expression_basis, expression_reference
+from ..synth.identities import NUM_SHAPE, identity_pool
+from ..synth.poses import keyed_generator, mirror_rotation, sample_poses
 
 __all__ = [
     "FINGER_JOINTS",
@@ -50,9 +52,7 @@ __all__ = [
 
 Subset = Literal["body", "face", "hands"]
 SUBSETS: tuple[str, ...] = ("body", "face", "hands")
-NUM_SHAPE = 10  # PCA components per identity
 _CHUNK = 256  # samples per parameter stream
-_TRUNCATE = 2.0  # identity coefficients are N(0, 1) truncated to [-2, 2]
 _DEFAULT_IDENTITIES = {"body": 200, "face": 100, "hands": 300}  # the paper's counts (§4.3)
 _FINGERS = ("Index", "Middle", "Ring", "Pinky")
 FINGER_JOINTS: tuple[str, ...] = tuple(
@@ -99,20 +99,6 @@ def _check_int(value: object, name: str, low: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < low:
         raise ValueError(f"{name}: expected an int >= {low}, got {value!r}")
     return value
-
-
-def identity_pool(size: int, *, seed: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """(size, 10) PCA coefficients of the identities 0..size-1 of pool ``seed``.
-
-    Each row is N(0, 1) truncated to [-2, 2] (inverse-CDF of a uniform), drawn from a stream
-    keyed by ``(seed, k)``, so ``identity_pool(m, seed=s)`` is a prefix of any larger pool.
-    """
-    _check_int(size, "size", 0)
-    _check_int(seed, "seed", 0)
-    lo = 0.5 * math.erfc(_TRUNCATE / math.sqrt(2.0))  # Phi(-2)
-    u = torch.stack([torch.rand(NUM_SHAPE, generator=keyed_generator("identity", seed, k), dtype=torch.float64)
-                     for k in range(size)]) if size else torch.zeros(0, NUM_SHAPE, dtype=torch.float64)  # fmt: skip
-    return torch.special.ndtri(lo + (1.0 - 2.0 * lo) * u).to(dtype)
 
 
 # --------------------------------------------------------------------------- facial actions
@@ -214,11 +200,6 @@ _FINGER_SPREAD_CUP = ((-1.0, 0.03), (-0.2, 0.03), (0.6, 0.12), (1.2, 0.25))
 _MCP_FLEX, _PIP_FLEX, _DIP_MAX, _THUMB_MCP, _THUMB_IP = 1.55, 1.7, 1.3, 0.9, 1.3
 
 
-def _mirror(v: torch.Tensor) -> torch.Tensor:
-    """Rotation vectors of the left side -> the right side (reflection x -> -x): (x, -y, -z)."""
-    return v * v.new_tensor([1.0, -1.0, -1.0])
-
-
 def _left_hand(n: int, gen: torch.Generator) -> dict[str, torch.Tensor]:
     """Rotation vectors (n, 3) of the left finger joints, keyed by name without the side."""
     f64 = torch.float64
@@ -270,7 +251,7 @@ def sample_hand_poses(n: int, generator: torch.Generator, *, dtype: torch.dtype 
     pose = torch.zeros(n, len(JOINT_NAMES) - 1, 3, dtype=torch.float64)
     for side in ("Left", "Right"):
         for name, v in _left_hand(n, generator).items():
-            pose[:, joint_index(f"{side}Hand{name}") - 1] = v if side == "Left" else _mirror(v)
+            pose[:, joint_index(f"{side}Hand{name}") - 1] = v if side == "Left" else mirror_rotation(v)
     return pose.to(dtype)
 
 

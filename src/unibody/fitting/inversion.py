@@ -49,15 +49,15 @@ from typing import Literal, get_args
 import torch
 from torch import nn
 
-from ._checks import check_finite, check_like, check_shape
+from .._checks import check_finite, check_like, check_shape
+from ..body import BodyLayer, PreparedIdentity
+from ..geometry.kinematics import forward_kinematics
+from ..geometry.procrustes import newton_schulz, polar_svd
+from ..geometry.rotations import matrix_to_axis_angle, matrix_to_rot6d, rot6d_to_matrix
+from ..geometry.skinning import lbs_sparse, skin_layout
+from ..geometry.sparse import crow_indices, csr
+from ..regions import REGIONS, dominant_joints, joint_regions
 from ._gauss_newton import gauss_newton, gauss_newton_data
-from .body import BodyLayer, PreparedIdentity
-from .geometry.kinematics import forward_kinematics
-from .geometry.procrustes import newton_schulz, polar_svd
-from .geometry.rotations import matrix_to_axis_angle, matrix_to_rot6d, rot6d_to_matrix
-from .geometry.skinning import lbs_sparse, skin_layout
-from .geometry.sparse import crow_indices, csr
-from .regions import REGIONS, dominant_joints, joint_regions
 
 __all__ = ["InversionConfig", "InversionResult", "PoseInverter", "PRESETS", "MAX_COORDINATE", "SIZE_BAND", "EDGE_BAND"]
 

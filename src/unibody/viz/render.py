@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 from PIL import Image, ImageFilter
 
-from .io.glb import MeshSpec, mesh_list, vertex_normals
+from ..io.glb import MeshSpec, mesh_list, vertex_normals
 
 __all__ = ["Camera", "MeshSpec", "frame_camera", "project", "render_image", "render_png"]
 
@@ -562,7 +562,7 @@ def render_png(
         camera=camera,
         supersample=supersample,
     )
-    from .io.atomic import atomic_path
+    from ..io.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         Image.fromarray(image, mode="RGB").save(os.fspath(tmp), format="PNG")

@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..rig import JOINT_NAMES
-from .atomic import save_npz
-from .npz import read_npz, reason
+from .io.atomic import save_npz
+from .io.npz import read_npz, reason
+from .rig import JOINT_NAMES
 
 __all__ = [
     "MOTION_FORMAT",

@@ -30,9 +30,9 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from ._checks import check_finite, check_like, check_shape
-from .body import BodyLayer
-from .identity.base import IdentityBackend
+from .._checks import check_finite, check_like, check_shape
+from ..body import BodyLayer
+from ..identity.base import IdentityBackend
 
 __all__ = ["IdentityFit", "fit_identity", "param_limits"]
 

@@ -1,5 +1,5 @@
 """Articulated Gauss-Newton: the shared Jacobian of skinned points, and the refinement of
-all joint rotations at once used by :mod:`unibody.inversion`.
+all joint rotations at once used by :mod:`unibody.fitting.inversion`.
 
 Parameters per frame: the Hips translation and, for each solved joint k, a world-frame
 rotation increment w_k about the joint's position g_k. Rotating joint k rigidly moves the
@@ -21,10 +21,10 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .geometry.rotations import axis_angle_to_matrix, skew
+from ..geometry.rotations import axis_angle_to_matrix, skew
 
 if TYPE_CHECKING:
-    from .body import BodyLayer, PreparedIdentity
+    from ..body import BodyLayer, PreparedIdentity
 
 __all__ = ["GaussNewtonData", "articulated_jacobian", "gauss_newton", "gauss_newton_data", "rotate_joints"]
 

@@ -25,30 +25,12 @@ import hashlib
 
 import torch
 
-from .geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from .rig import JOINT_NAMES
+from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from ..joint_limits import JOINT_RANGES
+from ..rig import JOINT_NAMES
 
-__all__ = ["JOINT_RANGES", "keyed_generator", "sample_poses"]
+__all__ = ["JOINT_RANGES", "keyed_generator", "mirror_rotation", "sample_poses"]
 
-# name: ((lo_x, lo_y, lo_z), (hi_x, hi_y, hi_z), (relaxed_x, relaxed_y, relaxed_z)), left side, radians.
-# Arms: about Z lowers (-) / raises (+) the arm, about Y swings it forward (-) / back (+), about X
-# twists it. Legs: about X flexes the hip forward (-) / the knee backward (+).
-JOINT_RANGES: dict[str, tuple[tuple[float, float, float], ...]] = {
-    "Spine1": ((-0.15, -0.2, -0.15), (0.35, 0.2, 0.15), (0.0, 0.0, 0.0)),
-    "Spine2": ((-0.15, -0.2, -0.15), (0.35, 0.2, 0.15), (0.0, 0.0, 0.0)),
-    "Chest": ((-0.1, -0.2, -0.1), (0.25, 0.2, 0.1), (0.0, 0.0, 0.0)),
-    "Neck1": ((-0.25, -0.35, -0.2), (0.35, 0.35, 0.2), (0.0, 0.0, 0.0)),
-    "Neck2": ((-0.2, -0.3, -0.15), (0.3, 0.3, 0.15), (0.0, 0.0, 0.0)),
-    "Head": ((-0.2, -0.3, -0.15), (0.3, 0.3, 0.15), (0.0, 0.0, 0.0)),
-    "LeftShoulder": ((-0.1, -0.3, -0.15), (0.1, 0.2, 0.3), (0.0, 0.0, 0.0)),
-    "LeftArm": ((-0.9, -1.5, -1.45), (0.9, 0.7, 1.2), (0.0, -0.1, -1.2)),
-    "LeftForeArm": ((-1.0, -2.4, -0.1), (1.2, 0.0, 0.1), (0.3, -0.3, 0.0)),
-    "LeftHand": ((-0.3, -0.4, -1.0), (0.3, 0.4, 0.9), (0.0, 0.0, 0.0)),
-    "LeftLeg": ((-2.0, -0.6, -0.4), (0.5, 0.6, 1.0), (0.0, 0.0, 0.05)),
-    "LeftShin": ((0.0, -0.2, -0.05), (2.3, 0.2, 0.05), (0.1, 0.0, 0.0)),
-    "LeftFoot": ((-0.8, -0.3, -0.3), (0.5, 0.3, 0.3), (0.0, 0.0, 0.0)),
-    "LeftToeBase": ((-0.5, -0.05, -0.05), (0.3, 0.05, 0.05), (0.0, 0.0, 0.0)),
-}
 _FINGER_CURL = (-1.2, 0.15, -0.3)  # about Z (palm down: - curls the finger), lo, hi, relaxed
 
 
@@ -59,7 +41,7 @@ def keyed_generator(*key: object) -> torch.Generator:
     return torch.Generator().manual_seed(int.from_bytes(digest, "little"))
 
 
-def _mirror(v: torch.Tensor) -> torch.Tensor:
+def mirror_rotation(v: torch.Tensor) -> torch.Tensor:
     """Reflect rotation vectors through the body's sagittal plane (x -> -x): (x, y, z) -> (x, -y, -z)."""
     return v * v.new_tensor([1.0, -1.0, -1.0])
 
@@ -172,7 +154,7 @@ def sample_poses(
             v = draw(lo, hi, relaxed)
             if side == "Right":
                 name_r = "Right" + name[4:]
-                pose[:, index[name_r]] = _mirror(v)
+                pose[:, index[name_r]] = mirror_rotation(v)
             else:
                 pose[:, index[name]] = v
     if fingers:
@@ -184,7 +166,7 @@ def sample_poses(
                     jitter = 0.15 * torch.randn(n, 1, generator=generator, dtype=dtype)
                     pose[:, index[f"{side}Hand{finger}{k}"], 2] = sign * (curl + jitter).squeeze(-1)
             thumb = 0.3 * torch.randn(n, 3, generator=generator, dtype=dtype)
-            pose[:, index[f"{side}HandThumb2"]] = thumb if sign > 0 else _mirror(thumb)
+            pose[:, index[f"{side}HandThumb2"]] = thumb if sign > 0 else mirror_rotation(thumb)
     # Hips: heading about Y, small tilt; a `tumble` fraction uniformly random.
     heading = (2 * torch.rand(n, generator=generator, dtype=dtype) - 1) * torch.pi
     tilt_v = (2 * torch.rand(n, 3, generator=generator, dtype=dtype) - 1) * tilt
@@ -226,7 +208,7 @@ def sample_poses(
             lower = axis_angle_to_matrix(-(1.25 + 0.25 * u[:, k, 1, None]) * pose.new_tensor([0.0, 0.0, 1.0]))
             back = axis_angle_to_matrix((0.2 + 0.6 * u[:, k, 2, None]) * pose.new_tensor([1.0, 0.0, 0.0]))
             arm = matrix_to_axis_angle(back @ lower)  # lowered to the side, then drawn back
-            arm = arm if sign > 0 else _mirror(arm)
+            arm = arm if sign > 0 else mirror_rotation(arm)
             elbow, upper = index[side + "ForeArm"], index[side + "Arm"]
             pose[:, upper] = torch.where(on[:, None], arm, pose[:, upper])
             pose[:, elbow, 1] = torch.where(on, -sign * (1.4 + 0.9 * u[:, k, 3]), pose[:, elbow, 1])
@@ -235,7 +217,7 @@ def sample_poses(
         for name in ("Shoulder", "Arm", "ForeArm", "Hand"):
             left, right = index["Left" + name], index["Right" + name]
             noise = 0.15 * (2 * torch.rand(n, 3, generator=generator, dtype=dtype) - 1)
-            pose[:, right] = torch.where(alike, _mirror(pose[:, left]) + noise, pose[:, right])
+            pose[:, right] = torch.where(alike, mirror_rotation(pose[:, left]) + noise, pose[:, right])
     if fold > 0:  # drawn last: the streams without it are unchanged
         u = torch.rand(n, 7, generator=generator, dtype=dtype)  # whether, hip, right hip, 2 knees, spine, chest
         on = u[:, 0] < fold

@@ -1,0 +1,1 @@
+"""Solvers on the body's public interface: pose inversion, the articulated Gauss-Newton, identity fitting."""

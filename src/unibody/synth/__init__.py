@@ -1,0 +1,1 @@
+"""The one generator of synthetic bodies, poses, hands and facial expressions every companion draws from."""

@@ -1,0 +1,1 @@
+"""Pictures without GL: a software rasteriser for meshes and markers."""
