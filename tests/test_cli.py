@@ -373,7 +373,7 @@ def test_npz_zip_bomb_is_refused(tmp_path, capsys):
 def test_warnings_are_one_line(tmp_path, capsys, monkeypatch):
     import warnings
 
-    import unibody.cli as cli
+    import unibody.cli.body_commands as cli
 
     seq, out = _seq(tmp_path / "seq.npz", 2), tmp_path / "motion.npz"
     original = cli._load_partial
