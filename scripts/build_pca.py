@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import sys
 import time
@@ -111,9 +110,10 @@ def _config(args: argparse.Namespace, recipe: Recipe) -> dict:
 
 
 def _save_checkpoint(path: Path, state, chunk: int, hist: np.ndarray, config: dict, elapsed: float) -> None:
+    from unibody.io.atomic import atomic_write
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_write(path) as f:  # an interrupted write never leaves a broken checkpoint
         np.savez(
             f,
             **state.to_numpy(),
@@ -122,7 +122,6 @@ def _save_checkpoint(path: Path, state, chunk: int, hist: np.ndarray, config: di
             config=np.asarray(json.dumps(config, sort_keys=True)),
             elapsed=np.asarray(elapsed),
         )
-    os.replace(tmp, path)  # atomic: an interrupted write never leaves a broken checkpoint
 
 
 def _load_checkpoint(path: Path, config: dict):

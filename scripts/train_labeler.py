@@ -59,6 +59,7 @@ from pathlib import Path
 import torch
 
 from unibody._checks import check_device
+from unibody.io.atomic import atomic_path
 from unibody.mocap.corrupt import MocapBatch
 from unibody.mocap.labeler import Labeler, labeling_loss, predict
 from unibody.mocap.layout import MarkerLayout
@@ -299,10 +300,9 @@ def main(argv: list[str] | None = None) -> None:
         print(f"resumed from {ckpt_path} at step {step}", flush=True)
 
     def save_checkpoint() -> None:
-        tmp = ckpt_path.with_suffix(".tmp")
         state = {"model": model.state_dict(), "opt": opt.state_dict(), "gen": gen.get_state(), "step": step}
-        torch.save({**state, "git_rev": rev}, tmp)
-        tmp.replace(ckpt_path)
+        with atomic_path(ckpt_path) as tmp:
+            torch.save({**state, "git_rev": rev}, tmp)
 
     stop = {"now": False}
     previous = {sig: signal.signal(sig, lambda *_: stop.update(now=True)) for sig in (signal.SIGINT, signal.SIGTERM)}

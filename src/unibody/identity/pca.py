@@ -41,6 +41,7 @@ import torch
 from torch import nn
 
 from .._checks import check_finite, check_like, check_shape
+from ..io.atomic import atomic_write
 
 __all__ = [
     "FORMAT_VERSION",
@@ -115,7 +116,7 @@ def write_asset(
         "std": np.asarray(std, dtype=np.float32),
         "metadata": np.asarray(json.dumps(metadata, sort_keys=True)),
     }
-    with open(path, "wb") as f:
+    with atomic_write(path) as f:
         np.savez_compressed(f, **arrays)
     return path.stat().st_size
 

@@ -22,7 +22,16 @@ from typing import IO
 
 import numpy as np
 
-__all__ = ["OutputError", "atomic_path", "atomic_write", "check_output", "output_lock", "save_npz", "waiting_lock"]
+__all__ = [
+    "OutputError",
+    "atomic_path",
+    "atomic_write",
+    "check_output",
+    "file_sha256",
+    "output_lock",
+    "save_npz",
+    "waiting_lock",
+]
 
 
 class OutputError(ValueError):
@@ -115,6 +124,17 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO]
     """Open a temporary file beside ``path`` for writing; on success it replaces ``path`` (see :func:`atomic_path`)."""
     with atomic_path(path) as tmp, open(tmp, mode) as f:
         yield f
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """Hex sha256 of a file's bytes (read in 1 MiB blocks): the key of resumable work and of checksummed sources."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def save_npz(path: str | os.PathLike[str], **arrays: np.ndarray) -> None:

@@ -50,6 +50,7 @@ from torch import nn
 
 from .._checks import check_finite, check_like, check_shape
 from ..geometry.rotations import rotation_angle
+from ..io.atomic import atomic_path
 from .orient import NUDGES, TILTS, fit_rotation
 from .sinkhorn import log_sinkhorn
 
@@ -457,7 +458,8 @@ class Labeler(nn.Module):
                 config["orienter"]["label_names"] = list(self.orienter.label_names)
         payload = {"format": LABELER_FORMAT, "config": config, "label_names": list(self.label_names),
                    "meta": meta, "state_dict": state}  # fmt: skip
-        torch.save(payload, Path(path))
+        with atomic_path(path) as tmp:
+            torch.save(payload, tmp)
 
     @classmethod
     def from_config(cls, config: LabelerConfig, **kwargs) -> Labeler:

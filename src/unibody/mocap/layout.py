@@ -24,6 +24,7 @@ import torch
 
 from .._checks import check_shape
 from ..geometry import mesh
+from ..io.atomic import atomic_write
 
 __all__ = ["LAYOUT_FORMAT", "MarkerLayout", "available_layouts", "place_markers", "vertex_normals"]
 
@@ -109,7 +110,8 @@ class MarkerLayout:
 
     def save(self, path: str | Path) -> None:
         """Write the layout as JSON."""
-        Path(path).write_text(json.dumps(self.to_json(), indent=1) + "\n")
+        with atomic_write(path, "w") as f:
+            f.write(json.dumps(self.to_json(), indent=1) + "\n")
 
 
 def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:

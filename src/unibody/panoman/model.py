@@ -27,6 +27,7 @@ from torch import nn
 
 from .._checks import check_finite, check_shape
 from ..identity.pca import PCAIdentity
+from ..io.atomic import atomic_path
 from ..rig import Rig
 from .mesh import EdgeTopology
 from .nets import MLP, CorrectionNet
@@ -246,7 +247,8 @@ class PanoMan(nn.Module):
         }
 
     def save(self, path: str | Path) -> None:
-        torch.save(self.state(), Path(path))
+        with atomic_path(path) as tmp:
+            torch.save(self.state(), tmp)
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> PanoMan:
