@@ -18,26 +18,9 @@ Input meshes may be on the canonical topology or on the layer's identity topolog
 native mesh), which is transferred first. Joints that skin no vertex (end joints, eyes) are
 unobservable and returned with zero (T-pose-relative) rotation.
 
-Input checks (every solver; each refusal is a ValueError naming ``vertices`` and the mesh):
-finite values; no coordinate beyond ``MAX_COORDINATE`` (1e5 m); not degenerate (flat); the
-mesh's size, the median distance of a fixed sample of 257 vertices from their per-axis median,
-within ``SIZE_BAND`` (0.2 to 5) times the identity's rest mesh's, and, after the transfer to the
-canonical topology, the median length of 512 sampled edges within ``EDGE_BAND`` (0.5 to 2)
-times the rest mesh's: when both ratios agree the mesh is in other units (millimetres,
-centimetres, inches, feet and kilometres are named), else it is random, shuffled or very noisy
-points or another identity; and a positive signed volume over 512 sampled faces (a mirrored mesh,
-left and right swapped, has a negative one). Without an identity (:meth:`PoseInverter.estimate_identity`)
-the bands are absolute: a size of 0.02-3 m and a median edge of 0.5-30 mm.
-
-Outlier vertices: a vertex farther from the mesh's robust centre (that sample median) than the
-diagonal of the identity's rest bounding box (about 2 m for an adult; 3 m without an identity)
-cannot be on the body. Such vertices (at most 1 % of a mesh; more is refused) are trimmed: each
-is replaced, for the solve only, by the mean of its inlier mesh neighbours (repeated outward
-for clusters), so every solver fits the rest of the mesh as if they were not there. The result's
-``per_vertex_error`` is measured against the mesh as given, so they show there. One vertex
-1 km away in each of 64 frames: analytic mean inlier error 2.1 -> 145.6 mm before this
-trimming, 2.1 mm with it (``python benchmarks/inversion_robust.py``). The checks cost a few
-per cent of the fastest solver (same benchmark, ``--sections speed``).
+Input checks (units, mirroring, foreign or random meshes, absurd coordinates; each refusal a
+ValueError naming ``vertices`` and the mesh) and the trimming of outlier vertices for the solve:
+docs/body.md ("Input checks"), figures in benchmarks/README.md (``inversion_robust.py``).
 """
 
 from __future__ import annotations

@@ -1,56 +1,14 @@
 """MoSh-like body solve: labelled markers -> PCA identity, latent markers and a body motion.
 
 Re-implements the method of MoSh / MoSh++ (paper 003 §4.3, Loper et al. 2014, Mahmood et
-al. 2019) with batched torch Gauss-Newton instead of chumpy:
+al. 2019) with batched torch Gauss-Newton instead of chumpy.
 
-* **Body.** :meth:`BodyLayer.from_pca` with ``shape_components`` coefficients (float64 inside
-  the solver). Only the 23 body joints are posed (Hips, spine, neck, head, shoulders, arms,
-  forearms, hands, legs, shins, feet, toe bases); fingers stay at a relaxed curl, eyes, jaw
-  and ends at zero. Only the marker anchors are skinned, never the whole mesh.
-* **Latent markers.** Marker m starts at ``v_a + n_a d_m`` on the rest body (its layout
-  vertex, the vertex normal and the layout distance), is skinned with the anchor's weights,
-  and may slide in stage 1 (priors toward the initial placement and toward its layout
-  distance from the skin, measured along the anchor normal; it is re-anchored to the nearest
-  vertex after every anneal level, as MoSh re-finds its local frame).
-* **Stage 1** (shape): ``stage1_frames`` frames spread over the sequence (the best visible
-  frame of each equal segment), a scale start and a Kabsch root per frame, then joint
-  Levenberg-Marquardt over the per-frame poses, the coefficients and the marker slides (Schur
-  complement on the per-frame blocks) with prior weights annealed by ``stage1_anneal``.
-* **Stage 2** (motion): per-frame pose and translation with the shape and latent markers
-  fixed, by a sliding window of ``window`` frames solved as one batch: each new frame starts
-  from its predecessor's latest estimate (or a constant-velocity guess from the last two
-  finished frames, whichever fits it better), every frame gets ``window`` LM iterations, and
-  the cost is one batched iteration per frame. The first frame starts from the relaxed pose and
-  a Kabsch root with the pose prior annealed from 10x (MoSh++); after a gap the root is re-found
-  by Kabsch, so the global orientation is never restricted (flips, handstands). An acceleration
-  prior on the model markers couples neighbouring frames (targets: the neighbours' latest
-  estimates). The data weight is renormalised by the number of visible markers and the pose-prior
-  weight grows with the missing fraction (MoSh++). Frames with too few visible markers are
-  interpolated (slerp) and flagged unsolved.
-
-**Robust data term.** A marker at distance d from its model marker costs
-``c^2 log(1 + d^2 / c^2)`` in units of ``marker_std^2`` (Cauchy, ``c = robust``, 15 mm by
-default; least squares below c): a mislabelled point, a swapped pair or a ghost taken for a
-marker barely pulls the body, and stands out by its residual. Each LM step reweights the
-rows (IRLS). On a synthetic body with 8 % of its labels moved to other markers' points the
-body joints stay within 4 mm (least squares: 116 mm; ``tests/test_mocap_solve.py``); on the
-evaldata files' own labels the median residual falls and the mean rises a little
-(``benchmarks/README.md``).
-
-**Pose prior.** Per joint and axis, ``(theta - mu) / sigma`` on the T-pose-relative axis-angle
-theta: mu is the relaxed standing pose and sigma half the joint range of
-:data:`unibody.joint_limits.JOINT_RANGES` (at least 0.05 rad); none on the Hips. It is a diagonal
-Gaussian standing in for MoSh's GMM pose prior: it fixes what the markers leave free (twist of
-segments with collinear markers, the split of a bend over Spine1/Spine2/Chest or Neck/Head).
-
-Frames: the solver works in unibody's frame (metres, Y up). :func:`lab_to_unibody` converts
-Z-up lab coordinates ((x, y, z) -> (x, z, -y)).
-
-Measured: ``benchmarks/README.md`` (``python benchmarks/mocap.py --sections solve``): 80-180
-frames/s on 2 CPU cores, stage 1 included, mean marker residuals 5-6 mm on the CMU files
-(``cmu41``: its wrist markers sit 9.5 mm off the skin, CMU's on ~15 cm wrist bars) and
-1-7 mm on the Plug-in Gait files. Synthetic known bodies (``tests/test_mocap_solve.py``):
-body joints within ~3 mm on average, marker residuals ~0.2 mm.
+Body: the native PCA (``shape_components`` coefficients, float64 inside), 23 posed body joints,
+only the marker anchors skinned. Stage 1 fits shape, latent marker placements and the poses of a
+few well-visible frames; stage 2 fits each frame by a sliding window of batched
+Levenberg-Marquardt steps, with a Cauchy data term (``SolveConfig.robust``) and a diagonal pose
+prior from :data:`unibody.joint_limits.JOINT_RANGES`. The solver works in unibody's frame (metres,
+Y up). The method in full: docs/mocap.md ("The solve"); figures: benchmarks/README.md.
 """
 
 from __future__ import annotations
