@@ -353,7 +353,7 @@ def speed_section(root: Path, models: dict[str, Labeler], seed: int, rounds: int
         marked = np.concatenate([split(read(root / rel), model.label_names)[0] for rel in FILES[name]])
         pick = np.linspace(0, len(marked) - 1, 256).round().astype(int)
         b = corrupt_frames(torch.as_tensor(marked[pick], dtype=torch.float32), gen)
-        own = model.config.get("retry", 0.0)
+        own = model.config.retry
         for retry in dict.fromkeys((own, 0.0)):
             for size in (1, 256):
                 batches = [(b.points[k : k + size], b.mask[k : k + size]) for k in range(0, 256, size)]
