@@ -65,7 +65,7 @@ SOURCE_SHA256 = {
 }
 _CM_TO_M = 0.01
 # Layout of a cache file: its arrays plus _CHECKSUM_KEY (bump to ignore older files).
-_CACHE_FORMAT = 3  # 3: closest triangles by libigl (11 tied wrap vertices pick another triangle)
+_CACHE_FORMAT = 2
 _CHECKSUM_KEY = "_sha256"
 _ANNY_VERTICES = 13718  # base_body.obj, pinned by SOURCE_SHA256
 _LOCK_TIMEOUT = 900.0  # s: longer than any build; then build in memory rather than wait
@@ -153,7 +153,9 @@ def _build(folder: Path) -> dict[str, np.ndarray]:
     # Tetrahedral correspondence canonical <- Anny native, on the artist's wrap (paper 000 §3.3).
     wrap, _ = read_obj(folder / "SOMA_wrap.obj")
     base, base_faces = read_obj(folder / "base_body.obj")
-    corr = build_correspondence(torch.from_numpy(wrap), torch.from_numpy(base), quads_to_triangles(base_faces))
+    corr = build_correspondence(
+        torch.from_numpy(wrap), torch.from_numpy(base), quads_to_triangles(base_faces), exact_ties=True
+    )
     return {
         "joint_names": np.asarray(rig["bone_labels"]),
         "parents": np.asarray(rig["bone_parents"], dtype=np.int64),

@@ -104,6 +104,7 @@ def closest_triangles(
     *,
     candidates: int = 32,
     chunk: int = 2048,
+    exact_ties: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Exact closest triangle of ``faces`` for each of ``points (N, 3)``.
 
@@ -115,7 +116,9 @@ def closest_triangles(
     Where several triangles are equally close (a point nearest to a shared edge or vertex)
     either may be returned. Returns ``(face_index (N,) long, closest point (N, 3),
     distance (N,))`` in the dtype of ``points``, on the device of ``vertices``. Runs without autograd:
-    it is a precomputation whose useful output is the index.
+    it is a precomputation whose useful output is the index. ``exact_ties`` takes the torch
+    search on the CPU too, whose choice among equally close triangles the shipped canonical
+    assets were built with (libigl picks another for 11 wrap vertices, moving them up to 0.5 mm).
     """
     sizes: dict[str, int] = {}
     check_shape(points, "N 3", name="points", sizes=sizes)
@@ -129,7 +132,7 @@ def closest_triangles(
         raise ValueError("faces: expected at least one triangle, got 0")
     if candidates < 1 or chunk < 1:
         raise ValueError(f"candidates/chunk: expected >= 1, got {candidates}/{chunk}")
-    if vertices.device.type != "cpu":
+    if vertices.device.type != "cpu" or exact_ties:
         return _closest_triangles_torch(points, vertices, faces, candidates, chunk)
     import igl  # a compiled extension: loaded on first use only
 
