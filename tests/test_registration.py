@@ -213,7 +213,8 @@ def test_cache_hit_returns_identical_arrays(registration, remeshed, tmp_path, mo
     assert len(calls) == 3
     # An unreadable entry is rebuilt, atomically replaced, and read back afterwards.
     files[0].write_bytes(b"not an npz")
-    topology_transfer(v, f, "anny-remeshed", config=PRESETS["coarse"])
+    with pytest.warns(assets.AssetWarning, match="is unusable .*rebuilding it"):
+        topology_transfer(v, f, "anny-remeshed", config=PRESETS["coarse"])
     assert len(calls) == 4
     again = topology_transfer(v, f, "anny-remeshed", config=PRESETS["coarse"])
     assert len(calls) == 4 and torch.equal(again.weights, second.weights)
