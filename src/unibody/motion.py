@@ -97,6 +97,8 @@ def _text(x: np.ndarray, where: str) -> str:
 
 def check_fps(fps: object, name: str = "fps") -> float:
     """Frames per second as a float: finite and positive (and at most 100,000)."""
+    if isinstance(fps, bool | str):
+        raise ValueError(f"{name}: expected a positive number, got {fps!r}")
     try:
         value = float(fps)  # type: ignore[arg-type]
     except (TypeError, ValueError):

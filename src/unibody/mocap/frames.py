@@ -7,22 +7,15 @@ refuses points that are not in metres, :func:`check_points` checks a solver's in
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
 from .._checks import check_shape, check_tensor
+from ..motion import check_fps  # one rule for frame rates (re-exported: the solve and its result use it)
 
 Points = torch.Tensor | np.ndarray  # lab_to_unibody and unibody_to_lab take and return either
 
 __all__ = ["Points", "check_fps", "check_marker_units", "check_points", "lab_to_unibody", "unibody_to_lab"]
-
-
-def check_fps(fps: float) -> None:
-    """Raise ValueError unless ``fps`` is a positive finite number."""
-    if isinstance(fps, bool) or not isinstance(fps, int | float) or not math.isfinite(fps) or fps <= 0:
-        raise ValueError(f"fps: expected a positive number, got {fps!r}")
 
 
 def _axes(points: Points, up: str) -> None:
