@@ -10,7 +10,9 @@ Motion file fields:
 ``joint_names`` (77,) str     the posed joints, ``unibody.JOINT_NAMES[1:]``
 ``fps``        () f32         frames per second
 ``identity``   (K,) f32       optional: identity parameters of ``identity_backend``
-``identity_backend`` () str   optional: e.g. ``"anny"``
+``identity_backend`` () str   optional: e.g. ``"pca"`` or ``"anny"``
+``source``     () str         optional: what the motion was converted from, e.g.
+                              ``"amass smplx female: walk.npz"`` or ``"bvh: 02_01.bvh"``
 ============== ============== ==========================================================
 
 Mesh-sequence file fields: ``vertices (T, N, 3)`` metres and ``topology`` (``"canonical"``
@@ -56,6 +58,7 @@ class Motion:
     fps: float = 30.0
     identity: np.ndarray | None = None
     identity_backend: str | None = None
+    source: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,6 +139,8 @@ def save_motion(path: str | Path, motion: Motion) -> None:
     if identity is not None:
         fields["identity"] = identity
         fields["identity_backend"] = np.asarray(motion.identity_backend or "")
+    if motion.source:
+        fields["source"] = np.asarray(str(motion.source))
     save_npz(path, **fields)
 
 
@@ -164,7 +169,8 @@ def load_motion(path: str | Path) -> Motion:
         backend = None
         if "identity_backend" in data.files:
             backend = _text(_field(data, "identity_backend", path), f"{path}: identity_backend") or None
-        return Motion(pose, transl, fps, identity, backend)
+        source = _text(_field(data, "source", path), f"{path}: source") if "source" in data.files else ""
+        return Motion(pose, transl, fps, identity, backend, source)
 
 
 def load_mesh_sequence(path: str | Path) -> MeshSequence:
