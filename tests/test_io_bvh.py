@@ -1,0 +1,201 @@
+"""BVH reading and writing (unibody.io.bvh), checked against bvhio, an independent parser (test-only)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from unibody.io.bvh import euler_to_matrix, matrix_to_euler, read_bvh
+
+CMU_BVH = Path(__file__).resolve().parents[2] / "shared" / "motions" / "cmu" / "bvh"
+ORDERS = ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")
+
+
+def _bvhio_world(path: Path, frames: list[int]) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Joint names (End Sites left out), world positions (F, J, 3) and local rotations (F, J, 3, 3) by bvhio.
+
+    Positions come from bvhio's hierarchy (which re-orients its rest frames along the bones, so
+    its local rotations are not the file's); local rotations from its raw BVH keyframes.
+    """
+    bvhio = pytest.importorskip("bvhio")
+    glm = pytest.importorskip("glm")  # bvhio's math library
+    root = bvhio.readAsHierarchy(str(path))
+    layout = [entry[0] for entry in root.layout()]
+    raw = [entry[0] for entry in bvhio.readAsBvh(str(path)).Root.layout()]
+    assert [j.Name for j in raw] == [j.Name for j in layout]
+    pos, rot = [], []
+    for f in frames:
+        root.loadPose(f)
+        pos.append([list(j.PositionWorld) for j in layout])
+        rot.append([np.array(glm.mat3_cast(j.Keyframes[f].Rotation)) for j in raw])  # numpy reads glm row by row
+    return [j.Name for j in layout], np.asarray(pos, dtype=np.float64), np.asarray(rot, dtype=np.float64)
+
+
+def _write(tmp_path: Path, text: str, name: str = "m.bvh", newline: str = "\n") -> Path:
+    path = tmp_path / name
+    path.write_bytes(text.replace("\n", newline).encode())
+    return path
+
+
+# Unusual channel orders, 6 channels on a non-root joint, a root with rotations first, tabs.
+UNUSUAL = """HIERARCHY
+ROOT pelvis
+{
+\tOFFSET 1.5 2.0e0 -0.5
+\tCHANNELS 6 Yrotation Xposition Zrotation Yposition Xrotation Zposition
+\tJOINT spine
+\t{
+\t\tOFFSET 0 10 0.25
+\t\tCHANNELS 3 Xrotation Yrotation Zrotation
+\t\tJOINT head
+\t\t{
+\t\t\tOFFSET 0.5 8 -1
+\t\t\tCHANNELS 6 Xposition Yposition Zposition Yrotation Zrotation Xrotation
+\t\t\tEnd Site
+\t\t\t{
+\t\t\t\tOFFSET 0 3 0
+\t\t\t}
+\t\t}
+\t}
+\tJOINT leg
+\t{
+\t\tOFFSET 2 -1 0
+\t\tCHANNELS 3 Yrotation Zrotation Xrotation
+\t\tEnd Site
+\t\t{
+\t\t\tOFFSET 0 -9 1.5e+00
+\t\t}
+\t}
+}
+MOTION
+Frames: {frames}
+Frame Time: 3.3333333e-02
+{data}
+"""
+
+
+def _unusual(tmp_path: Path, frames: int = 4, seed: int = 0, newline: str = "\n") -> tuple[Path, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    data = rng.uniform(-170, 170, size=(frames, 18))
+    data[:, [1, 3, 5, 9, 10, 11]] = rng.uniform(-20, 20, size=(frames, 6))  # positions
+    body = "\n".join(" ".join(f"{v:.6e}" for v in row) for row in data)
+    data = np.array([[float(v) for v in line.split()] for line in body.splitlines()])  # the values as written
+    return _write(tmp_path, UNUSUAL.replace("{frames}", str(frames)).replace("{data}", body), newline=newline), data
+
+
+def test_euler_round_trip_every_order_and_gimbal_lock():
+    rng = np.random.default_rng(1)
+    for order in ORDERS:
+        a = rng.uniform(-np.pi, np.pi, size=(200, 3))
+        a[:, 1] /= 2
+        a[:10, 1] = np.pi / 2
+        a[10:20, 1] = -np.pi / 2
+        R = euler_to_matrix(a, order)
+        np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+        np.testing.assert_allclose(euler_to_matrix(matrix_to_euler(R, order), order), R, atol=1e-9)
+    # the BVH convention: "Zrotation Xrotation Yrotation" is Rz @ Rx @ Ry
+    z, x, y = 0.3, -0.7, 1.1
+    Rz = np.array([[np.cos(z), -np.sin(z), 0], [np.sin(z), np.cos(z), 0], [0, 0, 1]])
+    Rx = np.array([[1, 0, 0], [0, np.cos(x), -np.sin(x)], [0, np.sin(x), np.cos(x)]])
+    Ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
+    np.testing.assert_allclose(euler_to_matrix(np.array([z, x, y]), "ZXY"), Rz @ Rx @ Ry, atol=1e-15)
+
+
+def test_read_real_cmu_bvh_agrees_with_bvhio():
+    path = CMU_BVH / "002" / "02_01.bvh"
+    if not path.exists():
+        pytest.skip("CMU motions not present")
+    m = read_bvh(path)
+    assert m.fps == 120.0 and m.meters_per_unit is None and m.source == "bvh"
+    assert m.rotations.shape == (m.num_frames, len(m.names), 3, 3) and m.num_frames == 344
+    frames = [0, 171, 343]
+    names, pos_ref, _ = _bvhio_world(path, frames)
+    idx = [m.names.index(n) for n in names]
+    pos, _ = m.world()
+    scale = np.abs(pos_ref).max()
+    assert np.abs(pos[frames][:, idx] - pos_ref).max() <= 1e-6 * scale
+
+
+@pytest.mark.parametrize("newline", ["\n", "\r\n"])
+def test_read_unusual_channels_agrees_with_bvhio(tmp_path, newline):
+    path, data = _unusual(tmp_path, newline=newline)
+    m = read_bvh(path)
+    assert m.names == ("pelvis", "spine", "head", "head_End", "leg", "leg_End")
+    assert m.parents.tolist() == [-1, 0, 1, 2, 0, 4]
+    assert m.fps == 30.0
+    # 6-channel joints take their positions from the channels; others keep their offsets
+    np.testing.assert_array_equal(m.translations[:, 0], data[:, [1, 3, 5]])
+    np.testing.assert_array_equal(m.translations[:, 2], data[:, [9, 10, 11]])
+    np.testing.assert_array_equal(m.translations[:, 4], np.broadcast_to([2.0, -1.0, 0.0], (4, 3)))
+    np.testing.assert_array_equal(m.rotations[:, 3], np.broadcast_to(np.eye(3), (4, 3, 3)))
+    np.testing.assert_allclose(m.rotations[:, 0], euler_to_matrix(np.radians(data[:, [0, 2, 4]]), "YZX"), atol=1e-15)
+    names, pos_ref, rot_ref = _bvhio_world(path, list(range(4)))
+    idx = [m.names.index(n) for n in names]
+    pos, _ = m.world()
+    scale = np.abs(pos_ref).max()
+    assert np.abs(pos[:, idx] - pos_ref).max() <= 1e-6 * scale
+    assert np.abs(m.rotations[:, idx] - rot_ref).max() <= 1e-6
+
+
+def test_read_bvh_speed_on_a_real_file():
+    path = CMU_BVH / "002" / "02_01.bvh"
+    if not path.exists():
+        pytest.skip("CMU motions not present")
+    t = time.perf_counter()
+    read_bvh(path)
+    assert time.perf_counter() - t < 1.0  # about 30 ms here; a per-value Python parse is ~10x slower
+
+
+@pytest.mark.slow
+def test_read_every_cmu_bvh():
+    files = sorted(CMU_BVH.glob("*/*.bvh"))
+    if len(files) < 68:
+        pytest.skip("CMU motions not present")
+    for path in files:
+        m = read_bvh(path)
+        assert m.num_frames > 0 and np.isfinite(m.rotations).all()
+
+
+HEADER = UNUSUAL.split("MOTION")[0]
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("", "empty file"),
+        ("hello world\n", "HIERARCHY ... MOTION"),
+        (HEADER, "expected a MOTION section"),
+        (HEADER.replace("\t}\n}\n", "\t}\n") + "MOTION\nFrames: 1\nFrame Time: 0.1\n" + "0 " * 18, "braces"),
+        (HEADER + "MOTION\nFrames: 1\nFrame Time: 0.1\n" + "0 " * 17, "line 33 (frame 0): expected 18 values, got 17"),
+        (
+            HEADER + "MOTION\nFrames: 3\nFrame Time: 0.1\n" + ("0 " * 18 + "\n") * 2,
+            "expected 3 frames (Frames:), got 2",
+        ),
+        (HEADER + "MOTION\nFrames: 2\nFrame Time: 0.1\n" + "0 " * 18 + "\n" + "0 nan " + "0 " * 16, "indices 1)"),
+        (HEADER + "MOTION\nFrames: 1\nFrame Time: 0.1\n" + "0 inf " + "0 " * 16, "NaN/inf in 1 frames"),
+        (HEADER + "MOTION\nFrames: 1\nFrame Time: 0.1\n" + "0 x " + "0 " * 16, "expected numbers, got 'x'"),
+        (HEADER + "MOTION\nFrames: 99999999999\nFrame Time: 0.1\n", "frames, got Frames: 99999999999"),
+        (HEADER + "MOTION\nFrames: 1\nFrame Time: 0\n" + "0 " * 18, "Frame Time"),
+        (HEADER + "MOTION\nFrame Time: 0.1\n" + "0 " * 18, "expected 'Frames:'"),
+        (HEADER.replace("Xrotation Yrotation Z", "Xrotation Wrotation Z") + "MOTION\n", "got 'Wrotation'"),
+        (HEADER.replace("OFFSET 0 10 0.25", "OFFSET 0 nan 0.25") + "MOTION\n", "finite number for OFFSET y"),
+    ],
+)
+def test_read_bvh_errors(tmp_path, text, message):
+    path = _write(tmp_path, text)
+    with pytest.raises(ValueError) as err:
+        read_bvh(path)
+    msg = str(err.value)
+    assert "\n" not in msg and str(path) in msg and message in msg, msg
+
+
+def test_read_bvh_refuses_absurd_joint_counts(tmp_path, monkeypatch):
+    import unibody.io.bvh as bvh
+
+    monkeypatch.setattr(bvh, "MAX_JOINTS", 3)
+    path, _ = _unusual(tmp_path)
+    with pytest.raises(ValueError, match="at most 3 joints"):
+        read_bvh(path)
