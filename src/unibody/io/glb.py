@@ -1,8 +1,15 @@
-"""Binary glTF 2.0 (``.glb``) export of triangle meshes, in pure numpy.
+"""Binary glTF 2.0 (``.glb``) export of triangle meshes and skinned animations, in pure numpy.
 
-One scene, one node and one mesh per :class:`MeshSpec`, each with a single
-triangle primitive carrying ``POSITION`` and ``NORMAL`` (float32) and uint32
+:func:`write_glb`: one scene, one node and one mesh per :class:`MeshSpec`, each with a
+single triangle primitive carrying ``POSITION`` and ``NORMAL`` (float32) and uint32
 indices, plus one PBR material built from the spec's colour.
+
+:func:`write_skinned_glb`: one skinned mesh and one animation (:class:`SkinnedAnimation`):
+a node per joint in the joint hierarchy, a skin with inverse bind matrices, ``JOINTS_n`` /
+``WEIGHTS_n`` sets of four influences each (as many sets as the animation has influences
+per vertex, padded with zero weights) and, per joint, a LINEAR rotation and a translation
+channel keyed at ``i / fps`` seconds. glTF's conventions hold throughout: metres, column
+vectors, quaternions ``(x, y, z, w)``, joint matrix = world transform @ inverse bind matrix.
 
 The layout follows the glTF 2.0 specification: a 12-byte header, a JSON chunk
 padded with spaces and a BIN chunk padded with zeros, both to a multiple of 4
@@ -21,7 +28,16 @@ import numpy as np
 
 from .atomic import atomic_write
 
-__all__ = ["MeshSpec", "mesh_list", "vertex_normals", "write_glb", "read_glb_positions", "read_glb_indices"]
+__all__ = [
+    "MeshSpec",
+    "SkinnedAnimation",
+    "mesh_list",
+    "vertex_normals",
+    "write_glb",
+    "write_skinned_glb",
+    "read_glb_positions",
+    "read_glb_indices",
+]
 
 _GLB_MAGIC = 0x46546C67  # b"glTF"
 _GLB_VERSION = 2
@@ -29,6 +45,8 @@ _CHUNK_JSON = 0x4E4F534A  # b"JSON"
 _CHUNK_BIN = 0x004E4942  # b"BIN\0"
 
 _FLOAT = 5126
+_UNSIGNED_BYTE = 5121
+_UNSIGNED_SHORT = 5123
 _UNSIGNED_INT = 5125
 _ARRAY_BUFFER = 34962
 _ELEMENT_ARRAY_BUFFER = 34963
@@ -129,6 +147,56 @@ def _pad4(data: bytes, fill: bytes) -> bytes:
     return data + fill * (-len(data) % 4)
 
 
+class _Builder:
+    """Accessors and buffer views over one binary blob; :meth:`write` emits the GLB atomically."""
+
+    def __init__(self) -> None:
+        self.blob = bytearray()
+        self.buffer_views: list[dict] = []
+        self.accessors: list[dict] = []
+
+    def add(self, array: np.ndarray, component: int, kind: str, target: int | None = None, bounds: bool = False) -> int:
+        """Append ``array`` as a new 4-byte aligned buffer view and accessor; return the accessor index."""
+        data = np.ascontiguousarray(array).astype("<" + np.dtype(_DTYPES[component]).str[1:], copy=False)
+        offset = len(self.blob)  # always a multiple of 4: every piece is padded
+        raw = data.tobytes()
+        self.blob.extend(_pad4(raw, b"\x00"))
+        view = {"buffer": 0, "byteOffset": offset, "byteLength": len(raw)}
+        if target is not None:
+            view["target"] = target
+        self.buffer_views.append(view)
+        acc: dict = {
+            "bufferView": len(self.buffer_views) - 1,
+            "componentType": component,
+            "count": int(data.shape[0]) if kind != "SCALAR" else int(data.size),
+            "type": kind,
+        }
+        if bounds:
+            flat = data.reshape(acc["count"], _COMPONENTS[kind])
+            acc["min"] = [float(x) for x in flat.min(axis=0)]
+            acc["max"] = [float(x) for x in flat.max(axis=0)]
+        self.accessors.append(acc)
+        return len(self.accessors) - 1
+
+    def write(self, path: str | os.PathLike[str], gltf: dict) -> None:
+        gltf = {
+            "asset": {"version": "2.0", "generator": "unibody"},
+            **gltf,
+            "accessors": self.accessors,
+            "bufferViews": self.buffer_views,
+            "buffers": [{"byteLength": len(self.blob)}],
+        }
+        json_chunk = _pad4(json.dumps(gltf, separators=(",", ":")).encode("utf-8"), b" ")
+        bin_chunk = bytes(self.blob)  # already padded to 4
+        total = 12 + 8 + len(json_chunk) + 8 + len(bin_chunk)
+        with atomic_write(path) as fh:
+            fh.write(struct.pack("<III", _GLB_MAGIC, _GLB_VERSION, total))
+            fh.write(struct.pack("<II", len(json_chunk), _CHUNK_JSON))
+            fh.write(json_chunk)
+            fh.write(struct.pack("<II", len(bin_chunk), _CHUNK_BIN))
+            fh.write(bin_chunk)
+
+
 def mesh_list(meshes: Sequence[MeshSpec]) -> list[MeshSpec]:
     """``meshes`` as a list, or ValueError if it is empty or holds anything but MeshSpec."""
     meshes = list(meshes)
@@ -156,28 +224,8 @@ def write_glb(path: str | os.PathLike[str], meshes: Sequence[MeshSpec]) -> None:
         if len(m.vertices) > np.iinfo(np.uint32).max:
             raise ValueError(f"meshes[{i}]: too many vertices for uint32 indices ({len(m.vertices)})")
 
-    blob = bytearray()
-    buffer_views: list[dict] = []
-    accessors: list[dict] = []
-
-    def add(array: np.ndarray, component: int, kind: str, target: int, bounds: bool = False) -> int:
-        data = np.ascontiguousarray(array).astype("<" + np.dtype(_DTYPES[component]).str[1:], copy=False)
-        offset = len(blob)  # always a multiple of 4: every piece below is padded
-        raw = data.tobytes()
-        blob.extend(_pad4(raw, b"\x00"))
-        buffer_views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(raw), "target": target})
-        acc: dict = {
-            "bufferView": len(buffer_views) - 1,
-            "componentType": component,
-            "count": int(data.shape[0]) if kind != "SCALAR" else int(data.size),
-            "type": kind,
-        }
-        if bounds:
-            flat = data.reshape(acc["count"], _COMPONENTS[kind])
-            acc["min"] = [float(x) for x in flat.min(axis=0)]
-            acc["max"] = [float(x) for x in flat.max(axis=0)]
-        accessors.append(acc)
-        return len(accessors) - 1
+    out = _Builder()
+    add = out.add
 
     gl_meshes: list[dict] = []
     materials: list[dict] = []
@@ -215,25 +263,227 @@ def write_glb(path: str | os.PathLike[str], meshes: Sequence[MeshSpec]) -> None:
         nodes.append({"name": m.name, "mesh": i})
 
     gltf = {
-        "asset": {"version": "2.0", "generator": "unibody"},
         "scene": 0,
         "scenes": [{"nodes": list(range(len(nodes)))}],
         "nodes": nodes,
         "meshes": gl_meshes,
         "materials": materials,
-        "accessors": accessors,
-        "bufferViews": buffer_views,
-        "buffers": [{"byteLength": len(blob)}],
     }
-    json_chunk = _pad4(json.dumps(gltf, separators=(",", ":")).encode("utf-8"), b" ")
-    bin_chunk = bytes(blob)  # already padded to 4
-    total = 12 + 8 + len(json_chunk) + 8 + len(bin_chunk)
-    with atomic_write(path) as fh:
-        fh.write(struct.pack("<III", _GLB_MAGIC, _GLB_VERSION, total))
-        fh.write(struct.pack("<II", len(json_chunk), _CHUNK_JSON))
-        fh.write(json_chunk)
-        fh.write(struct.pack("<II", len(bin_chunk), _CHUNK_BIN))
-        fh.write(bin_chunk)
+    out.write(path, gltf)
+
+
+# ----------------------------------------------------------------------------- skinned animation
+
+
+@dataclass(frozen=True, slots=True)
+class SkinnedAnimation:
+    """A mesh bound to a joint hierarchy, and T frames of the joints' local transforms.
+
+    Conventions: metres, column vectors, joint ``k``'s world transform is
+    ``G_k = G_parent(k) @ [R_k | t_k]`` with ``(R_k, t_k)`` its local rotation and translation
+    (a root's local transform is its world one). The mesh is stored in the pose of
+    ``bind_matrices``: a vertex moves as ``v' = sum_n w_n G_(j_n) bind_(j_n)^-1 v``.
+
+    Attributes:
+        vertices: (V, 3) mesh in the bind pose, m.
+        faces: (F, 3) triangle indices into ``vertices``.
+        joint_names: J joint names (unique).
+        parents: (J,) parent index per joint, -1 for a root; parents precede their children.
+        bind_matrices: (J, 4, 4) world transforms of the joints in the pose the mesh is stored in.
+        joint_indices: (V, K) joint of each influence (any index where the weight is 0).
+        joint_weights: (V, K) influence weights, >= 0, each row summing to 1 (within 1e-3;
+            the writers renormalise).
+        rotations: (T, J, 4) local rotations as quaternions ``(x, y, z, w)`` (normalised on write).
+        translations: (T, J, 3) local translations, m, in the parent's frame.
+        fps: frames per second (frame i is at i / fps seconds).
+        name: the mesh's name.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    joint_names: tuple[str, ...]
+    parents: np.ndarray
+    bind_matrices: np.ndarray
+    joint_indices: np.ndarray
+    joint_weights: np.ndarray
+    rotations: np.ndarray
+    translations: np.ndarray
+    fps: float
+    name: str = "body"
+
+    def __post_init__(self) -> None:
+        names = tuple(self.joint_names)
+        j = len(names)
+        if j == 0 or len(set(names)) != j or not all(isinstance(n, str) and n for n in names):
+            raise ValueError(f"joint_names: expected unique non-empty strings, got {names[:5]}...")
+        parents = np.asarray(self.parents)
+        if parents.shape != (j,) or parents.dtype.kind not in "iu":
+            raise ValueError(f"parents: expected ({j},) integers, got shape {parents.shape} and dtype {parents.dtype}")
+        bad = [k for k, p in enumerate(parents.tolist()) if not -1 <= p < k]
+        if bad:
+            raise ValueError(f"parents: expected -1 or an earlier joint, got {int(parents[bad[0]])} at joint {bad[0]}")
+        v = _finite(self.vertices, "vertices", lambda s: len(s) == 2 and s[0] > 0 and s[1] == 3, "(V, 3)")
+        f = _as_numpy(self.faces)
+        if f.ndim != 2 or f.shape[1] != 3 or not len(f) or f.dtype.kind not in "iu":
+            raise ValueError(f"faces: expected (F, 3) integers with F > 0, got shape {f.shape} and dtype {f.dtype}")
+        if f.min() < 0 or f.max() >= len(v):
+            raise ValueError(f"faces: indices must lie in [0, {len(v) - 1}], got range [{f.min()}, {f.max()}]")
+        bind = _finite(self.bind_matrices, "bind_matrices", lambda s: s == (j, 4, 4), f"({j}, 4, 4)")
+        if not np.allclose(bind[:, 3], [0, 0, 0, 1]) or not np.all(np.abs(np.linalg.det(bind[:, :3, :3])) > 1e-12):
+            raise ValueError("bind_matrices: expected invertible affine transforms (bottom row 0 0 0 1)")
+        idx = _as_numpy(self.joint_indices)
+        if idx.ndim != 2 or idx.shape[0] != len(v) or idx.dtype.kind not in "iu":
+            raise ValueError(
+                f"joint_indices: expected ({len(v)}, K) integers, got shape {idx.shape} and dtype {idx.dtype}"
+            )
+        if idx.min() < 0 or idx.max() >= j:
+            raise ValueError(f"joint_indices: indices must lie in [0, {j - 1}], got range [{idx.min()}, {idx.max()}]")
+        w = _finite(self.joint_weights, "joint_weights", lambda s: s == idx.shape, f"{idx.shape}")
+        total = w.sum(axis=1)
+        if w.min() < 0 or not np.all(np.abs(total - 1) <= 1e-3):
+            worst = int(np.argmax(np.abs(total - 1) + (w.min(axis=1) < 0)))
+            raise ValueError(
+                f"joint_weights: expected non-negative rows summing to 1, got row {worst} = {w[worst].tolist()}"
+            )
+        rot = _finite(
+            self.rotations, "rotations", lambda s: len(s) == 3 and s[0] > 0 and s[1:] == (j, 4), f"(T, {j}, 4)"
+        )
+        t = rot.shape[0]
+        if not np.all(np.linalg.norm(rot, axis=-1) > 1e-6):
+            raise ValueError("rotations: expected non-zero quaternions (x, y, z, w), got a zero one")
+        trans = _finite(self.translations, "translations", lambda s: s == (t, j, 3), f"({t}, {j}, 3)")
+        if isinstance(self.fps, bool) or not isinstance(self.fps, int | float | np.number):
+            raise ValueError(f"fps: expected a positive number, got {self.fps!r}")
+        if not (np.isfinite(self.fps) and self.fps > 0):
+            raise ValueError(f"fps: expected a positive number, got {self.fps!r}")
+        if not isinstance(self.name, str):
+            raise ValueError(f"name: expected a str, got {type(self.name).__name__}")
+        fields = {"joint_names": names, "parents": parents.astype(np.int64), "vertices": v, "faces": f}
+        fields |= {"bind_matrices": bind, "joint_indices": idx, "joint_weights": w, "rotations": rot}
+        fields |= {"translations": trans, "fps": float(self.fps)}
+        for key, value in fields.items():
+            object.__setattr__(self, key, value)
+
+    @property
+    def num_frames(self) -> int:
+        return self.rotations.shape[0]
+
+    def unit_quaternions(self) -> np.ndarray:
+        """(T, J, 4) float64 rotations, normalised, each joint's sign chosen so that
+        consecutive frames have a non-negative dot product (LINEAR interpolation then takes the
+        short way)."""
+        q = self.rotations / np.linalg.norm(self.rotations, axis=-1, keepdims=True)
+        dots = np.einsum("tjc,tjc->tj", q[1:], q[:-1])
+        flips = np.cumprod(np.where(dots < 0, -1.0, 1.0), axis=0)
+        return np.concatenate([q[:1], q[1:] * flips[..., None]])
+
+    def normalized_weights(self) -> np.ndarray:
+        """(V, K) float32 weights renormalised so that each row sums to 1 in float32 too.
+
+        The float32 rounding remainder goes to each row's largest weight.
+        """
+        w = self.joint_weights / self.joint_weights.sum(axis=1, keepdims=True)
+        w32 = w.astype(np.float32)
+        top = np.argmax(w32, axis=1)
+        rows = np.arange(len(w32))
+        rest = w32.sum(axis=1, dtype=np.float32) - w32[rows, top]
+        w32[rows, top] = np.float32(1) - rest
+        return w32
+
+
+def _finite(x: object, name: str, ok, shape: str) -> np.ndarray:
+    """``x`` as float64, or ValueError naming ``name`` unless ``ok(shape)`` and all finite."""
+    a = _as_numpy(x)
+    if not ok(a.shape) or a.dtype.kind not in "fiu":
+        raise ValueError(f"{name}: expected shape {shape} of real numbers, got shape {a.shape} and dtype {a.dtype}")
+    a = np.asarray(a, dtype=np.float64)
+    if not np.isfinite(a).all():
+        raise ValueError(f"{name}: expected finite values, got {int((~np.isfinite(a)).sum())} NaN/inf entries")
+    return a
+
+
+def write_skinned_glb(path: str | os.PathLike[str], animation: SkinnedAnimation) -> None:
+    """Write a skinned, animated mesh to ``path`` as a binary glTF 2.0 file (atomically).
+
+    Nodes 0..J-1 are the joints (named, in the hierarchy of ``parents``, at the frame-0
+    pose), node J the skinned mesh (at the scene root, no transform of its own, as the
+    specification asks). The skin lists the joints in order, so ``JOINTS_n`` values are joint
+    indices; its inverse bind matrices are ``bind_matrices^-1``. The K influences per vertex
+    are written as ceil(K / 4) ``JOINTS_n`` (unsigned byte, or short past 256 joints) /
+    ``WEIGHTS_n`` (float) sets. The one animation has, per joint, a rotation and a translation
+    channel sampled LINEARLY at ``i / fps`` seconds (float32).
+
+    Raises:
+        ValueError: ``animation`` is not a SkinnedAnimation.
+    """
+    if not isinstance(animation, SkinnedAnimation):
+        raise ValueError(f"animation: expected a SkinnedAnimation, got {type(animation).__name__}")
+    a = animation
+    j, t = len(a.joint_names), a.num_frames
+    out = _Builder()
+    quats = a.unit_quaternions().astype(np.float32)
+    trans = a.translations.astype(np.float32)
+
+    nodes: list[dict] = []
+    for k, name in enumerate(a.joint_names):
+        node = {"name": name, "rotation": quats[0, k].tolist(), "translation": trans[0, k].tolist()}
+        children = np.flatnonzero(a.parents == k).tolist()
+        if children:
+            node["children"] = children
+        nodes.append(node)
+    nodes.append({"name": a.name, "mesh": 0, "skin": 0})
+    roots = np.flatnonzero(a.parents < 0).tolist()
+
+    k_sets = -(-a.joint_indices.shape[1] // 4)
+    pad = 4 * k_sets - a.joint_indices.shape[1]
+    joints = np.pad(a.joint_indices, ((0, 0), (0, pad)))
+    weights = np.pad(a.normalized_weights(), ((0, 0), (0, pad)))
+    joints = np.where(weights > 0, joints, 0)  # unused slots: joint 0 with weight 0
+    joint_type = _UNSIGNED_BYTE if j <= 256 else _UNSIGNED_SHORT
+    attributes = {
+        "POSITION": out.add(a.vertices.astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER, bounds=True),
+        "NORMAL": out.add(vertex_normals(a.vertices, a.faces).astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER),
+    }
+    for n in range(k_sets):
+        cols = slice(4 * n, 4 * n + 4)
+        attributes[f"JOINTS_{n}"] = out.add(joints[:, cols], joint_type, "VEC4", _ARRAY_BUFFER)
+        attributes[f"WEIGHTS_{n}"] = out.add(weights[:, cols], _FLOAT, "VEC4", _ARRAY_BUFFER)
+    indices = out.add(a.faces.astype(np.uint32).ravel(), _UNSIGNED_INT, "SCALAR", _ELEMENT_ARRAY_BUFFER)
+    inverse_bind = np.linalg.inv(a.bind_matrices)
+    inverse_bind[:, 3] = (0.0, 0.0, 0.0, 1.0)  # exactly affine, as the validator checks
+    ibm = out.add(inverse_bind.transpose(0, 2, 1).astype(np.float32), _FLOAT, "MAT4")  # column-major
+
+    times = out.add(
+        np.arange(t, dtype=np.float64).astype(np.float32) / np.float32(a.fps), _FLOAT, "SCALAR", bounds=True
+    )
+    samplers, channels = [], []
+    for k in range(j):
+        for path_name, values, kind in (("rotation", quats[:, k], "VEC4"), ("translation", trans[:, k], "VEC3")):
+            samplers.append({"input": times, "output": out.add(values, _FLOAT, kind), "interpolation": "LINEAR"})
+            channels.append({"sampler": len(samplers) - 1, "target": {"node": k, "path": path_name}})
+
+    skin: dict = {"name": "skeleton", "joints": list(range(j)), "inverseBindMatrices": ibm}
+    if len(roots) == 1:
+        skin["skeleton"] = roots[0]
+    material = {
+        "name": f"{a.name}_material",
+        "pbrMetallicRoughness": {
+            "baseColorFactor": [0.75, 0.75, 0.75, 1.0],
+            "metallicFactor": 0.0,
+            "roughnessFactor": 0.8,
+        },
+    }
+    primitive = {"attributes": attributes, "indices": indices, "material": 0, "mode": _TRIANGLES}
+    gltf = {
+        "scene": 0,
+        "scenes": [{"nodes": [*roots, j]}],
+        "nodes": nodes,
+        "meshes": [{"name": a.name, "primitives": [primitive]}],
+        "materials": [material],
+        "skins": [skin],
+        "animations": [{"name": "motion", "samplers": samplers, "channels": channels}],
+    }
+    out.write(path, gltf)
 
 
 # ----------------------------------------------------------------------------- reading
