@@ -24,9 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_write
 from .skeletal import SkeletalMotion
 
-__all__ = ["MAX_CHANNELS", "MAX_FRAMES", "MAX_JOINTS", "euler_to_matrix", "matrix_to_euler", "read_bvh"]
+__all__ = ["MAX_CHANNELS", "MAX_FRAMES", "MAX_JOINTS", "euler_to_matrix", "matrix_to_euler", "read_bvh", "write_bvh"]
 
 MAX_JOINTS = 10_000
 """The most joints (End Sites included) a BVH may declare."""
@@ -306,3 +307,146 @@ def read_bvh(path: str | os.PathLike[str]) -> SkeletalMotion:
         meters_per_unit=None,
         source="bvh",
     )
+
+
+def _check_array(x: object, shape: tuple[int | None, ...], name: str) -> np.ndarray:
+    """A finite float64 array of ``shape`` (None: any size); one-line ValueError otherwise."""
+    arr = np.asarray(x)
+    if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape, strict=True)):
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name}: expected shape {want}, got {arr.shape}")
+    if arr.dtype.kind not in "biuf":
+        raise ValueError(f"{name}: expected numbers, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64)
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name}: expected finite values, got {int(np.size(arr) - np.isfinite(arr).sum())} NaN/inf")
+    return arr
+
+
+def _check_skeleton(names: object, parents: object) -> tuple[list[str], np.ndarray]:
+    names = [str(n) for n in names]  # type: ignore[union-attr]
+    if not names or len(names) > MAX_JOINTS:
+        raise ValueError(f"names: expected 1..{MAX_JOINTS} joint names, got {len(names)}")
+    bad = [n for n in names if not n or any(c.isspace() for c in n) or n in "{}"]
+    if bad:
+        raise ValueError(f"names: expected names without spaces, got {bad[0]!r}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"names: expected unique names, got {len(names) - len(set(names))} repeated")
+    par = np.asarray(parents)
+    if par.shape != (len(names),) or par.dtype.kind not in "iu":
+        raise ValueError(f"parents: expected ({len(names)},) integers, got shape {par.shape} dtype {par.dtype}")
+    par = par.astype(np.int64)
+    if par[0] != -1 or np.any(par[1:] < 0) or np.any(par[1:] >= np.arange(1, len(names))):
+        raise ValueError(f"parents: expected -1 for the root (index 0) and parents before children, got {par.tolist()}")
+    return names, par
+
+
+def write_bvh(
+    path: str | os.PathLike[str],
+    names: tuple[str, ...] | list[str],
+    parents: np.ndarray,
+    offsets: np.ndarray,
+    rotations: np.ndarray,
+    root_positions: np.ndarray,
+    fps: float,
+    *,
+    order: str = "ZYX",
+    end_sites: dict[str, np.ndarray] | None = None,
+) -> None:
+    """Write a skeleton and its motion as a BVH file, atomically, exactly at ``path``.
+
+    Args:
+        path: the output file.
+        names: J joint names (no spaces), the root first.
+        parents: (J,) parent indices, -1 for the root, parents before children.
+        offsets: (J, 3) rest offsets in the parent's frame (any length unit; written as given).
+        rotations: (T, J, 3, 3) local rotations (identity at rest), as in :class:`SkeletalMotion`.
+        root_positions: (T, 3) the root's position per frame (replaces its offset).
+        fps: frames per second (``Frame Time: 1/fps``).
+        order: rotation channel order, a permutation of ``"XYZ"``; ``"ZXY"`` writes
+            ``Zrotation Xrotation Yrotation`` (R = Rz @ Rx @ Ry).
+        end_sites: offsets of End Sites by joint name; a leaf joint not named here gets a zero
+            End Site (what BVH readers expect at the end of every chain).
+
+    The root has 6 channels (``Xposition Yposition Zposition`` then its rotations), every other
+    joint 3 rotation channels; animated translations of non-root joints are not written. Angles
+    are written with 1e-6 degree resolution and lengths with 9 significant digits; each Euler
+    channel is unwrapped over frames (no 360° jumps).
+
+    Raises:
+        ValueError: a one-line message naming the argument with the wrong shape, a NaN/inf, or a
+            bad name, parent list, order or fps.
+    """
+    names, par = _check_skeleton(names, parents)
+    j = len(names)
+    if not (isinstance(order, str) and sorted(order) == ["X", "Y", "Z"]):
+        raise ValueError(f"order: expected a permutation of 'XYZ' such as 'ZXY', got {order!r}")
+    off = _check_array(offsets, (j, 3), "offsets")
+    rot = _check_array(rotations, (None, j, 3, 3), "rotations")
+    t = rot.shape[0]
+    if not 0 < t <= MAX_FRAMES:
+        raise ValueError(f"rotations: expected 1..{MAX_FRAMES} frames, got {t}")
+    root = _check_array(root_positions, (t, 3), "root_positions")
+    if isinstance(fps, bool) or not isinstance(fps, int | float | np.floating | np.integer) or not 0 < fps <= 1e5:
+        raise ValueError(f"fps: expected a positive number (at most 100000), got {fps!r}")
+    ends = {str(k): _check_array(v, (3,), f"end_sites[{k!r}]") for k, v in (end_sites or {}).items()}
+    unknown = sorted(set(ends) - set(names))
+    if unknown:
+        raise ValueError(f"end_sites: expected joint names, got {unknown[0]!r}")
+
+    angles = np.degrees(np.unwrap(matrix_to_euler(rot, order), axis=0))  # (T, J, 3)
+    data = np.concatenate([root, angles.reshape(t, 3 * j)], axis=1)
+    children: list[list[int]] = [[] for _ in range(j)]
+    for k in range(1, j):
+        children[par[k]].append(k)
+    rot_channels = " ".join(f"{a}rotation" for a in order)
+    out: list[str] = ["HIERARCHY"]
+    order_written = _depth_first(children)
+    depth = np.zeros(j, dtype=np.int64)
+    for k in range(1, j):
+        depth[k] = depth[par[k]] + 1
+    for n, k in enumerate(order_written):  # open each joint; close those whose subtree ends here
+        pad = "\t" * int(depth[k])
+        pos = "Xposition Yposition Zposition " if k == 0 else ""
+        out += [f"{pad}{'ROOT' if k == 0 else 'JOINT'} {names[k]}", f"{pad}{{"]
+        out.append(f"{pad}\tOFFSET {off[k, 0]:.9g} {off[k, 1]:.9g} {off[k, 2]:.9g}")
+        out.append(f"{pad}\tCHANNELS {6 if k == 0 else 3} {pos}{rot_channels}")
+        if not children[k]:
+            _close(out, k, names, par, depth, ends, order_written[n + 1] if n + 1 < j else None)
+    cols = np.concatenate([np.arange(3), 3 + (3 * np.asarray(order_written)[:, None] + np.arange(3)).ravel()])
+    data = data[:, cols]
+    out += ["MOTION", f"Frames: {t}", f"Frame Time: {1.0 / float(fps):.10g}"]
+    fmt = " ".join(["%.9g"] * 3 + ["%.6f"] * (3 * j))
+    with atomic_write(path, "w") as f:
+        f.write("\n".join(out) + "\n")
+        f.writelines(fmt % tuple(row) + "\n" for row in data)
+
+
+def _close(
+    out: list[str], k: int, names: list[str], par: np.ndarray, depth: np.ndarray, ends: dict, following: int | None
+) -> None:
+    """After leaf ``k``: close it and every ancestor whose subtree ends here, End Sites first.
+
+    ``following`` is the next joint written (None at the end); the ancestors below its parent close.
+    A leaf always gets an End Site (zero unless ``ends`` names it), any other joint only if named.
+    """
+    stop = -1 if following is None else int(par[following])
+    leaf = True
+    while k != stop:
+        pad = "\t" * int(depth[k])
+        if leaf or names[k] in ends:
+            e = ends.get(names[k], np.zeros(3))
+            out += [f"{pad}\tEnd Site", f"{pad}\t{{", f"{pad}\t\tOFFSET {e[0]:.9g} {e[1]:.9g} {e[2]:.9g}", f"{pad}\t}}"]
+        out.append(f"{pad}}}")
+        k, leaf = int(par[k]), False
+
+
+def _depth_first(children: list[list[int]]) -> list[int]:
+    """Joint indices in the depth-first order a BVH lists them (the channel order of each frame)."""
+    seen: list[int] = []
+    stack = [0]
+    while stack:
+        k = stack.pop()
+        seen.append(k)
+        stack.extend(reversed(children[k]))
+    return seen
