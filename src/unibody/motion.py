@@ -16,7 +16,8 @@ Motion file fields:
 ============== ============== ==========================================================
 
 Mesh-sequence file fields: ``vertices (T, N, 3)`` metres and ``topology`` (``"canonical"``
-or an identity backend's name such as ``"anny"``), optionally ``identity (K,)``.
+or an identity backend's name such as ``"anny"``), optionally ``identity (K,)`` and ``fps ()``
+(frames per second; files without it say nothing of their rate).
 
 Readers check every field (shape, dtype, finite values, ``fps > 0``) and raise ``ValueError``
 naming the file and the field; a file that is not an npz at all (empty, truncated, random
@@ -63,11 +64,15 @@ class Motion:
 
 @dataclass(frozen=True, slots=True)
 class MeshSequence:
-    """Posed meshes ``vertices (T, N, 3)`` on ``topology``, optional ``identity (K,)``."""
+    """Posed meshes ``vertices (T, N, 3)`` on ``topology``, optional ``identity (K,)`` and ``fps``.
+
+    ``fps`` is None when the file does not state its frame rate.
+    """
 
     vertices: np.ndarray
     topology: str
     identity: np.ndarray | None = None
+    fps: float | None = None
 
 
 def _field(data: np.lib.npyio.NpzFile, key: str, path: str | Path) -> np.ndarray:
@@ -192,4 +197,11 @@ def load_mesh_sequence(path: str | Path) -> MeshSequence:
         if identity is not None:
             ok = identity.ndim == 1 and identity.size > 0
             identity = _floats(identity, "(K,)", ok, f"{path}: identity")
-        return MeshSequence(vertices, _text(_field(data, "topology", path), f"{path}: topology"), identity)
+        fps = None
+        if "fps" in data.files:
+            rate = _field(data, "fps", path)
+            if rate.shape != () or rate.dtype.kind not in "fiu":
+                raise ValueError(f"{path}: fps: expected a number, got shape {rate.shape} and dtype {rate.dtype}")
+            fps = check_fps(rate, f"{path}: fps")
+        topology = _text(_field(data, "topology", path), f"{path}: topology")
+        return MeshSequence(vertices, topology, identity, fps)

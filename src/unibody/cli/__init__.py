@@ -19,6 +19,7 @@ import torch
 
 from ._common import EXIT_CODES, InputError, UsageError, _progress
 from .body_commands import _assets_info, run_demo, run_invert, run_pose
+from .convert_commands import add_convert_parser, run_convert
 from .mocap_commands import run_mocap_label, run_mocap_layout, run_mocap_solve
 
 __all__ = ["EXIT_CODES", "InputError", "UsageError", "main"]
@@ -53,6 +54,7 @@ def _parser() -> argparse.ArgumentParser:
     pose.add_argument("motion", type=Path)
     pose.add_argument("--out", type=Path, required=True, help="meshes file to write (.npz)")
     pose.add_argument("--procedural", action="store_true", help="with the shipped procedural twist joints")
+    add_convert_parser(sub, [writes])
     mocap = sub.add_parser("mocap", parents=[common], help="optical mocap: label raw C3D point clouds, solve the body")
     msub = mocap.add_subparsers(dest="mocap_command", required=True)
     lab = msub.add_parser("label", parents=[writes], help="raw markers (.c3d/.npz) -> labelled markers (.c3d/.npz)")
@@ -102,6 +104,8 @@ def _run(args: argparse.Namespace) -> None:
         run_invert(args.sequence, args.out, args.preset, args.batch, force)
     elif args.command == "pose":
         run_pose(args.motion, args.out, args.procedural, force)
+    elif args.command == "convert":
+        run_convert(args, force)
     elif args.mocap_command == "label":
         run_mocap_label(
             args.markers, args.out, args.model, args.up, not args.per_frame, args.retry, args.bf16, args.body,

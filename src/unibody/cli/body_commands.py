@@ -173,10 +173,14 @@ def run_invert(seq_path: Path, out: Path, preset: str, batch: int, force: bool =
             _progress(f"\n{done}/{len(vertices)} frames saved in {partial}; rerun the same command to resume")
             raise
         _progress("")
+        if seq.fps is None:
+            _progress(f"{seq_path} has no fps field: the motion is written at 30 fps")
         err = torch.cat(errors)
         identity = None if seq.identity is None else np.asarray(seq.identity, np.float32)
         backend = "anny" if identity is not None else None
-        save_motion(out, Motion(torch.cat(poses).numpy(), torch.cat(transl).numpy(), 30.0, identity, backend))
+        fps = seq.fps if seq.fps is not None else 30.0
+        source = f"meshes: {seq_path.name}"
+        save_motion(out, Motion(torch.cat(poses).numpy(), torch.cat(transl).numpy(), fps, identity, backend, source))
         partial.unlink(missing_ok=True)
     print(f"wrote {out}: {len(err)} frames, mean per-vertex error {1e3 * float(err.mean()):.2f} mm")
 
@@ -238,7 +242,10 @@ def run_pose(motion_path: Path, out: Path, procedural: bool = False, force: bool
             params = np.full((1, 6), 0.5, np.float32) if motion.identity is None else motion.identity[None]
         prepared = layer.prepare_identity(torch.from_numpy(np.asarray(params, np.float32)))
         posed = layer.pose(prepared, torch.from_numpy(motion.pose), transl=torch.from_numpy(motion.transl))
-        save_npz(out, vertices=posed.vertices.numpy(), faces=layer.faces.numpy(), topology=np.asarray("canonical"))
+        save_npz(
+            out, vertices=posed.vertices.numpy(), faces=layer.faces.numpy(), topology=np.asarray("canonical"),
+            fps=np.asarray(motion.fps, np.float32),
+        )  # fmt: skip
     print(f"wrote {out}: {len(posed.vertices)} meshes")
 
 
