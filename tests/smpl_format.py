@@ -34,6 +34,7 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from unibody.io.obj import read_obj
 
@@ -101,9 +102,12 @@ def template(num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def make_model(
-    family: str, *, seed: int = 0, num_shape: int | None = None, posedirs: bool = False
+    family: str, *, seed: int = 0, num_shape: int | None = None, posedirs: bool = False, oracle: bool = False
 ) -> dict[str, np.ndarray]:
-    """A random model of ``family`` in the official key layout (float64, like the files)."""
+    """A random model of ``family`` in the official key layout (float64, like the files).
+
+    ``oracle`` adds the keys the ``smplx`` package needs to load the file (see :func:`oracle_keys`).
+    """
     num_vertices, num_joints, default_shape = SIZES[family]
     rng = np.random.default_rng(seed)
     v, faces = template(num_vertices)
@@ -129,9 +133,155 @@ def make_model(
         ),
         "f": faces.astype(np.uint32),
     }
-    if posedirs:
+    if posedirs or oracle:
         model["posedirs"] = rng.normal(scale=0.001, size=(num_vertices, 3, 9 * (num_joints - 1)))
+    if oracle:
+        model.update(oracle_keys(family, len(faces), seed))
     return model
+
+
+def oracle_keys(family: str, num_faces: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """The keys besides the model that ``smplx`` reads: hand PCA (SMPL-H, SMPL-X), face landmarks (SMPL-X).
+
+    Random but well-formed: the forward compared in the tests uses full hand poses
+    (``use_pca=False``, ``flat_hand_mean=True``), so none of them changes the posed mesh.
+    """
+    rng = np.random.default_rng(seed + 1)
+    out: dict[str, np.ndarray] = {}
+    if family in ("smplh", "smplx"):
+        for side in "lr":
+            out[f"hands_components{side}"] = np.linalg.qr(rng.normal(size=(45, 45)))[0]
+            out[f"hands_mean{side}"] = rng.normal(scale=0.1, size=45)
+    if family == "smplx":
+        out["lmk_faces_idx"] = rng.integers(0, num_faces, 51).astype(np.int64)
+        out["lmk_bary_coords"] = rng.dirichlet(np.ones(3), 51)
+        out["dynamic_lmk_faces_idx"] = rng.integers(0, num_faces, (79, 17)).astype(np.int64)
+        out["dynamic_lmk_bary_coords"] = rng.dirichlet(np.ones(3), (79, 17))
+    return out
+
+
+# --- a model file of the canonical body itself (the AMASS and mesh-sequence tests) -------------------------------
+
+_DROPPED = ("End", "Index4", "Middle4", "Ring4", "Pinky4", "Neck2")
+
+
+def canonical_joints(family: str) -> tuple[str, ...]:
+    """The canonical joints a :func:`canonical_model` of ``family`` keeps, in index order (Hips first).
+
+    Ends, fourth finger segments and Neck2 are dropped (55 joints: the SMPL-X count); SMPL-H
+    (52) also drops the jaw and the eyes. Parents precede children, as the files require.
+    """
+    from unibody import JOINT_NAMES
+
+    keep = [n for n in JOINT_NAMES[1:] if not any(n.endswith(d) for d in _DROPPED)]
+    if family == "smplh":
+        keep = [n for n in keep if n not in ("Jaw", "LeftEye", "RightEye")]
+    if len(keep) != SIZES[family][1]:
+        raise ValueError(f"family: expected smplh or smplx, got {family!r}")
+    return tuple(keep)
+
+
+def canonical_model(family: str, *, seed: int = 0, num_shape: int = 16) -> tuple[dict[str, np.ndarray], object]:
+    """A ``family``-format model file skinned exactly like the canonical body, and its topology transfer.
+
+    The template is a seeded subset of the canonical PCA mean mesh in the bind A-pose
+    (10,475 or 6,890 of its 18,056 vertices), the joints are the bind joints of
+    :func:`canonical_joints` (each regressed exactly as an affine combination of four
+    vertices), the weights are the canonical ones with every dropped joint merged into its
+    kept ancestor, and the shape directions are smooth (affine fields of the template).
+    Posed by the SMPL equations (zero pose = the bind A-pose), it gives meshes the
+    canonical rig reproduces, up to the transfer. The transfer maps each canonical vertex
+    through the tetrahedron of its three nearest template vertices (exact at rest): what a
+    registration would give, without its 40 s. ``posedirs`` are zero and ``num_shape``
+    shape columns are followed, for SMPL-X, by 10 expression columns when ``num_shape`` is 10.
+    """
+    import torch
+
+    from unibody import JOINT_NAMES, BodyLayer
+    from unibody.geometry.tetra import lift_tetrahedra, tet_barycentric
+    from unibody.topology import TopologyTransfer
+
+    num_vertices, num_joints, _ = SIZES[family]
+    rng = np.random.default_rng(seed)
+    layer = _pca_layer()
+    with torch.no_grad():
+        prepared = layer.prepare_identity(torch.zeros(1, layer.identity.num_params, dtype=torch.float64))
+    bind = prepared.rest_vertices[0].numpy()
+    joints_all = prepared.rest_joints[0].numpy()
+    subset = np.sort(rng.permutation(bind.shape[0])[:num_vertices])
+    v = bind[subset]
+    keep = canonical_joints(family)
+    index = {n: i for i, n in enumerate(JOINT_NAMES)}
+    kept = [index[n] for n in keep]
+    slot = {c: i for i, c in enumerate(kept)}
+    parents_all = layer.parents.tolist()
+
+    def ancestor(c: int) -> int:
+        while c not in slot:
+            c = parents_all[c]
+        return slot[c]
+
+    parents = np.array([-1] + [ancestor(parents_all[c]) for c in kept[1:]])
+    skin = layer.skinning
+    dense = np.zeros((bind.shape[0], num_joints))
+    owner = np.array([ancestor(j) if j > 0 else 0 for j in range(len(JOINT_NAMES))])
+    np.add.at(dense, (skin.vertex.numpy(), owner[skin.joint.numpy()]), skin.weight.double().numpy())
+    weights = dense[subset]
+    tree = cKDTree(v)
+    regressor = np.zeros((num_joints, num_vertices))
+    _, near_joint = tree.query(joints_all[kept], k=24)
+    for j, c in enumerate(kept):  # the minimum-norm affine weights of 24 near vertices: exact, well spread
+        ids = near_joint[j]
+        a = np.concatenate([v[ids].T, np.ones((1, len(ids)))])
+        regressor[j, ids] = np.linalg.lstsq(a, np.append(joints_all[c], 1.0), rcond=None)[0]
+    centre = v.mean(0)
+    dirs = np.stack([(v - centre) @ (0.03 * rng.normal(size=(3, 3))) for _ in range(num_shape)], axis=2)
+    if family == "smplx" and num_shape == 10:
+        dirs = np.concatenate([dirs, rng.normal(scale=1e-4, size=dirs.shape)], axis=2)
+    # transfer: the tetrahedron of the three nearest template vertices of every canonical vertex
+    near = _nearest(bind, v, tree)
+    fv = torch.from_numpy(near)
+    vt = torch.from_numpy(v)
+    w = tet_barycentric(torch.from_numpy(bind), lift_tetrahedra(vt, fv))
+    transfer = TopologyTransfer(family, num_vertices, fv, w)
+    model = {
+        "v_template": v,
+        "shapedirs": dirs,
+        "posedirs": np.zeros((num_vertices, 3, 9 * (num_joints - 1))),
+        "J_regressor": regressor,
+        "weights": weights,
+        "kintree_table": np.stack([np.where(parents < 0, ROOT_PARENT, parents), np.arange(num_joints)]).astype(
+            np.int64
+        ),
+        "f": np.unique(np.sort(near, axis=1), axis=0).astype(np.uint32),
+    }
+    return model, transfer
+
+
+_LAYER: list = []
+
+
+def _pca_layer():
+    """The float64 PCA layer, built once per test session."""
+    import torch
+
+    from unibody import BodyLayer
+
+    if not _LAYER:
+        _LAYER.append(BodyLayer.from_pca(num_components=16, dtype=torch.float64))
+    return _LAYER[0]
+
+
+def _nearest(points: np.ndarray, candidates: np.ndarray, tree: cKDTree) -> np.ndarray:
+    """(N, 3) a well-shaped triangle of near candidates per point: the nearest, and the pair of
+    the next 7 that spans the largest triangle with it."""
+    _, ids = tree.query(points, k=8)
+    p = candidates[ids]  # (N, 8, 3)
+    e = p[:, 1:] - p[:, :1]
+    area = np.linalg.norm(np.cross(e[:, :, None], e[:, None, :]), axis=-1)  # (N, 7, 7)
+    best = area.reshape(len(points), -1).argmax(1)
+    a, b = np.unravel_index(best, (7, 7))
+    return np.stack([ids[:, 0], ids[np.arange(len(points)), a + 1], ids[np.arange(len(points)), b + 1]], 1)
 
 
 # --- stand-ins for chumpy and scipy objects ------------------------------------------------------------------

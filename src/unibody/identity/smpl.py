@@ -34,7 +34,16 @@ from .._checks import check_finite, check_like, check_shape
 from ..io import safe_pickle
 from ..io.npz import check_npz_members
 
-__all__ = ["FAMILIES", "GENDERS", "MODEL_KEYS", "SMPLIdentity", "gender_from_path", "shape_columns"]
+__all__ = [
+    "FAMILIES",
+    "GENDERS",
+    "MODEL_KEYS",
+    "POSE_KEYS",
+    "SMPLIdentity",
+    "gender_from_path",
+    "read_model_file",
+    "shape_columns",
+]
 
 FAMILIES: dict[tuple[int, int], str] = {(6890, 24): "smpl", (6890, 52): "smplh", (10475, 55): "smplx"}
 """(vertices, joints) -> family name."""
@@ -43,6 +52,9 @@ GENDERS: tuple[str, ...] = ("neutral", "male", "female", "unknown")
 
 MODEL_KEYS: tuple[str, ...] = ("v_template", "shapedirs", "f", "J_regressor", "kintree_table")
 """The keys read from a model file (official names); every other key is ignored."""
+
+POSE_KEYS: tuple[str, ...] = ("weights", "posedirs")
+"""The further keys a posable model reads (:class:`unibody.identity.smpl_model.SMPLModel`)."""
 
 _SMPLX_SHAPE, _SMPLX_EXPRESSION = 300, 100
 _GENDER_TOKENS = {"neutral": "neutral", "male": "male", "female": "female"}
@@ -157,19 +169,8 @@ class SMPLIdentity(nn.Module):
             pickle.UnpicklingError: a ``.pkl`` that :mod:`unibody.io.safe_pickle` refuses.
         """
         path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"path: no SMPL-family model file at {path}")
-        suffix = path.suffix.lower()
-        if suffix not in (".npz", ".pkl"):
-            raise ValueError(f"path: expected a .npz or .pkl SMPL-family model file, got {path.name!r}")
-        arrays = _read_npz(path) if suffix == ".npz" else _read_pkl(path)
-        kintree = arrays["kintree_table"]
-        if kintree.ndim != 2 or kintree.shape[0] != 2 or kintree.dtype.kind not in "iu":
-            raise ValueError(
-                f"{path}: kintree_table: expected integer shape (2, J), got {kintree.dtype} {kintree.shape}"
-            )
-        parents = kintree[0].astype(np.int64)
-        parents[0] = -1  # the root's parent is stored as 4294967295 (uint32 -1)
+        arrays = read_model_file(path)
+        parents = arrays["parents"]
         try:
             return cls(
                 arrays["v_template"],
@@ -296,8 +297,41 @@ def _num_betas(num_betas: int | None, available: int, family: str) -> int:
     return num_betas
 
 
-def _missing(path: Path, key: str) -> ValueError:
-    return ValueError(f"{path}: missing key {key!r}; an SMPL-family model file holds {', '.join(MODEL_KEYS)}")
+def read_model_file(path: str | Path, keys: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """Read the arrays of an official SMPL-family model file (``.npz`` or ``.pkl``), safely.
+
+    Args:
+        path: the model file.
+        keys: further official keys to read (e.g. :data:`POSE_KEYS`), all required.
+
+    Returns:
+        The :data:`MODEL_KEYS` and ``keys`` as numeric numpy arrays (chumpy and sparse values
+        made dense), plus ``parents (J,)`` int64 from ``kintree_table[0]`` with -1 for the root.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: an unknown suffix, a missing key or a non-numeric value (the message
+            starts with the file name).
+        pickle.UnpicklingError: a ``.pkl`` that :mod:`unibody.io.safe_pickle` refuses.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no SMPL-family model file at {path}")
+    suffix = path.suffix.lower()
+    if suffix not in (".npz", ".pkl"):
+        raise ValueError(f"path: expected a .npz or .pkl SMPL-family model file, got {path.name!r}")
+    wanted = MODEL_KEYS + tuple(k for k in keys if k not in MODEL_KEYS)
+    arrays = _read_npz(path, wanted) if suffix == ".npz" else _read_pkl(path, wanted)
+    kintree = arrays["kintree_table"]
+    if kintree.ndim != 2 or kintree.shape[0] != 2 or kintree.dtype.kind not in "iu":
+        raise ValueError(f"{path}: kintree_table: expected integer shape (2, J), got {kintree.dtype} {kintree.shape}")
+    parents = kintree[0].astype(np.int64)
+    parents[0] = -1  # the root's parent is stored as 4294967295 (uint32 -1)
+    return {**arrays, "parents": parents}
+
+
+def _missing(path: Path, key: str, keys: tuple[str, ...] = MODEL_KEYS) -> ValueError:
+    return ValueError(f"{path}: missing key {key!r}; an SMPL-family model file holds {', '.join(keys)}")
 
 
 def _numeric(value: object, path: Path, key: str) -> np.ndarray:
@@ -309,17 +343,17 @@ def _numeric(value: object, path: Path, key: str) -> np.ndarray:
     return arr
 
 
-def _read_pkl(path: Path) -> dict[str, np.ndarray]:
+def _read_pkl(path: Path, keys: tuple[str, ...] = MODEL_KEYS) -> dict[str, np.ndarray]:
     data = safe_pickle.load(path)
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a pickled dict of model arrays, got {type(data).__name__}")
-    for key in MODEL_KEYS:
+    for key in keys:
         if key not in data:
-            raise _missing(path, key)
-    return {key: _numeric(data[key], path, key) for key in MODEL_KEYS}
+            raise _missing(path, key, keys)
+    return {key: _numeric(data[key], path, key) for key in keys}
 
 
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
+def _read_npz(path: Path, keys: tuple[str, ...] = MODEL_KEYS) -> dict[str, np.ndarray]:
     try:
         check_npz_members(path)
         npz = np.load(path, allow_pickle=False)
@@ -328,10 +362,10 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
     if not isinstance(npz, np.lib.npyio.NpzFile):
         raise ValueError(f"{path}: not an .npz archive (it holds a single array)")
     with npz:
-        for key in MODEL_KEYS:
+        for key in keys:
             if key not in npz.files:
-                raise _missing(path, key)
-        return {key: _numeric(_npz_member(npz, path, key), path, key) for key in MODEL_KEYS}
+                raise _missing(path, key, keys)
+        return {key: _numeric(_npz_member(npz, path, key), path, key) for key in keys}
 
 
 def _npz_member(npz: np.lib.npyio.NpzFile, path: Path, key: str) -> object:
