@@ -197,7 +197,7 @@ def canonical_model(family: str, *, seed: int = 0, num_shape: int = 16) -> tuple
     """
     import torch
 
-    from unibody import JOINT_NAMES, BodyLayer
+    from unibody import JOINT_NAMES
     from unibody.geometry.tetra import lift_tetrahedra, tet_barycentric
     from unibody.topology import TopologyTransfer
 

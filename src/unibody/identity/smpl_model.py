@@ -234,7 +234,7 @@ class SMPLModel(nn.Module):
             raise ValueError(f"betas / expression: batches {sorted(batches)} differ; expected equal batches or 1")
         b = max(batches)
         full = []
-        for x, n, name in ((betas, self.num_betas, "betas"), (expression, self.num_expression, "expression")):
+        for x, n in ((betas, self.num_betas), (expression, self.num_expression)):
             full.append(self.v_template.new_zeros(b, n) if x is None else x.expand(b, -1))
         return torch.cat(full, dim=1)
 
