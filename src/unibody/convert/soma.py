@@ -123,7 +123,10 @@ def _to_canonical(R: torch.Tensor, names: list[str], orient: torch.Tensor | None
         Rj = R[:, index[name]]
         if orient is not None:  # R_abs,j = O'_pᵀ R_rel,j O'_j with the file's own orientations
             p = parents[j]
-            Op = orient[index[JOINT_NAMES[p]]] if p >= 0 and JOINT_NAMES[p] in index else Oc[max(p, 0)]
+            if p < 0:  # the Root's parent is the world
+                Op = torch.eye(3, dtype=R.dtype)
+            else:  # a parent the file does not hold (the Root) has the canonical orientation
+                Op = orient[index[JOINT_NAMES[p]]] if JOINT_NAMES[p] in index else Oc[p]
             Rj = Op.T @ Rj @ orient[index[name]]
         absolute.append(Rj)
     A = torch.stack(absolute, 1)
