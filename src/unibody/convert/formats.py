@@ -181,10 +181,15 @@ def detect(path: str | Path) -> str:
     ``root_orient`` / ``pose_body`` keys -> amass; ``vertices`` -> meshes. Text starting with
     ``HIERARCHY`` -> bvh; AMC (``:FULLY-SPECIFIED``, ``:DEGREES`` or numbered frames) -> asf.
 
+    The suffix only tells a damaged file from another kind of file: a ``.bvh``, ``.amc`` or
+    ``.npz`` that is not even a zip or text of its kind raises ValueError (it is reported as a
+    failed file), any other unrecognised file NotAMotion (a folder's other files are skipped).
+
     Raises:
         FileNotFoundError: ``path`` does not exist.
         NotAMotion: the content is none of these (the message says what was recognised).
-        ValueError: an npz that cannot be read (truncated, pickled, a zip bomb).
+        ValueError: an npz that cannot be read (truncated, pickled, a zip bomb), or a damaged
+            file named as a motion.
     """
     path = Path(path)
     if path.is_dir():
@@ -200,9 +205,14 @@ def detect(path: str | Path) -> str:
             raise ValueError(f"{path}: not a readable .npz file") from None
     if head[:6] == b"\x93NUMPY":
         raise NotAMotion(f"{path}: a single .npy array; expected an .npz of named arrays")
-    if b"\x00" in head:
-        raise NotAMotion(f"{path}: binary content (starts with {head[:8]!r}); not a motion format")
-    return _text_format(path, head)
+    try:
+        if b"\x00" in head:
+            raise NotAMotion(f"{path}: binary content (starts with {head[:8]!r}); not a motion format")
+        return _text_format(path, head)
+    except NotAMotion as exc:
+        if path.suffix.lower() in (".bvh", ".amc", ".npz"):  # named as a motion: a damaged one, not another file
+            raise ValueError(str(exc)) from None
+        raise
 
 
 def output_name(relative: Path, fmt: str, keep_suffix: bool = False) -> Path:
