@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..body import BodyLayer, BodyOutput, PreparedIdentity
+from ..body import BodyLayer, PreparedIdentity
 from ..geometry.rotations import matrix_to_quat_xyzw
 from ..io.atomic import atomic_write
 from ..io.glb import SkinnedAnimation, write_skinned_glb
@@ -72,17 +72,33 @@ def _check(motion: Motion, path: object, options: ConvertOptions, suffixes: tupl
     return path
 
 
-def _posed(motion: Motion, options: ConvertOptions) -> tuple[BodyLayer, PreparedIdentity, Iterator[BodyOutput]]:
-    """The motion's body and an iterator over its posed frames, ``options.batch`` at a time."""
+def _posed(
+    motion: Motion, options: ConvertOptions, meshes: bool = True
+) -> tuple[BodyLayer, PreparedIdentity, Iterator[tuple[torch.Tensor, torch.Tensor | None]]]:
+    """The motion's body and an iterator over its posed frames, ``options.batch`` at a time.
+
+    Each item is ``(transforms (B, J, 4, 4), vertices (B, V, 3) or None)``. Without ``meshes``
+    the skinning is skipped (FK only, :meth:`BodyLayer.skin_transforms`): the rigged exports
+    need only the transforms, and 2,000 frames then take 1.0 s instead of 9.1 s (batch 256,
+    min of 3 interleaved runs, 2 shared CPU cores). A layer with procedural twist joints always goes
+    through :meth:`BodyLayer.pose` (its twist joints move the mesh, not the 78 public joints).
+    """
     dtype = _DTYPES[options.dtype]
     layer, prepared = body_for(motion, dtype)
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype)
 
-    def batches() -> Iterator[BodyOutput]:
+    def batches() -> Iterator[tuple[torch.Tensor, torch.Tensor | None]]:
         with torch.no_grad():
             for s in range(0, len(motion.pose), options.batch):
                 pose = torch.as_tensor(np.asarray(motion.pose[s : s + options.batch]), dtype=dtype)
                 transl = torch.as_tensor(np.asarray(motion.transl[s : s + options.batch]), dtype=dtype)
-                yield layer.pose(prepared, pose, transl=transl)
+                if meshes or layer.twist is not None:
+                    out = layer.pose(prepared, pose, transl=transl)
+                    yield out.transforms, out.vertices
+                    continue
+                rot, pos, _ = layer.skin_transforms(prepared, layer.local_rotations(pose), transl)
+                top = torch.cat([rot, pos[..., None]], dim=-1)
+                yield torch.cat([top, bottom.expand(*top.shape[:2], 1, 4)], dim=-2), None
 
     return layer, prepared, batches()
 
@@ -102,16 +118,16 @@ def _local(transforms: torch.Tensor, parents: torch.Tensor, is_root: torch.Tenso
 
 def _skinned(motion: Motion, options: ConvertOptions, influences: int | None) -> SkinnedAnimation:
     """The motion as a :class:`SkinnedAnimation` of its canonical rest mesh (top ``influences``, or all)."""
-    layer, prepared, frames = _posed(motion, options)
+    layer, prepared, frames = _posed(motion, options, meshes=False)
     parents_list = [int(p) for p in layer.rig_tree.parents]
     parents = torch.tensor([max(p, 0) for p in parents_list])
     is_root = torch.tensor([p < 0 for p in parents_list])
     t, j = len(motion.pose), layer.num_joints
     rotations, translations = np.empty((t, j, 4)), np.empty((t, j, 3))
     s = 0
-    for out in frames:
-        b = out.transforms.shape[0]
-        rotations[s : s + b], translations[s : s + b] = _local(out.transforms, parents, is_root)
+    for transforms, _ in frames:
+        b = transforms.shape[0]
+        rotations[s : s + b], translations[s : s + b] = _local(transforms, parents, is_root)
         s += b
 
     bind = np.zeros((j, 4, 4))
@@ -195,8 +211,8 @@ def write_meshes(motion: Motion, path: Path, options: ConvertOptions) -> None:
         with zf.open("vertices.npy", "w", force_zip64=True) as member:
             header = {"descr": np.lib.format.dtype_to_descr(np.dtype("<f4")), "fortran_order": False, "shape": shape}
             np.lib.format.write_array_header_2_0(member, header)
-            for out in frames:
-                member.write(np.ascontiguousarray(out.vertices.numpy(), dtype="<f4").tobytes())
+            for _, vertices in frames:
+                member.write(np.ascontiguousarray(vertices.numpy(), dtype="<f4").tobytes())
         for name, array in small.items():
             with zf.open(f"{name}.npy", "w") as member:
                 np.lib.format.write_array(member, array, allow_pickle=False)
