@@ -3,13 +3,24 @@
 from __future__ import annotations
 
 import json
+import shutil
 import struct
+import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from conftest import icosahedron
-from unibody.io.glb import MeshSpec, read_glb_indices, read_glb_positions, vertex_normals, write_glb
+from unibody.io.glb import (
+    MeshSpec,
+    SkinnedAnimation,
+    read_glb_indices,
+    read_glb_positions,
+    vertex_normals,
+    write_glb,
+    write_skinned_glb,
+)
 
 
 def cube(size: float = 1.0, centre=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
@@ -187,3 +198,162 @@ def test_bad_write_inputs(tmp_path):
     with pytest.raises(ValueError, match=r"^meshes\[0\]:"):
         write_glb(tmp_path / "x.glb", [MeshSpec(v, np.zeros((0, 3), dtype=int))])
     assert not (tmp_path / "x.glb").exists()
+
+
+# ----------------------------------------------------------------------------- skinned animation
+
+PARENTS = np.array([-1, 0, 1, 1, 3, 0])  # a branching 6-joint tree
+NODE = shutil.which("node")
+VALIDATOR = Path(__file__).parent / "node" / "node_modules" / "gltf-validator"
+
+
+def _rotation_z(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def skinned(frames: int = 5, k: int = 5, **changes) -> SkinnedAnimation:
+    """A cube skinned to 6 joints with k distinct influences per vertex (some of weight 0)."""
+    rng = np.random.default_rng(7)
+    v, f = cube(1.0, (0.0, 1.0, 0.0))
+    bind = np.tile(np.eye(4), (6, 1, 1))
+    for j in range(6):
+        bind[j, :3, :3] = _rotation_z(0.3 * j)
+        bind[j, :3, 3] = (0.1 * j, 0.4 * j, -0.05 * j)
+    idx = np.stack([rng.permutation(6)[:k] for _ in range(len(v))])
+    w = rng.dirichlet(np.ones(k), size=len(v))
+    w[0, -1] = 0.0  # an unused slot
+    w /= w.sum(axis=1, keepdims=True)
+    q = rng.normal(size=(frames, 6, 4))
+    args = {
+        "vertices": v,
+        "faces": f,
+        "joint_names": tuple(f"j{i}" for i in range(6)),
+        "parents": PARENTS,
+        "bind_matrices": bind,
+        "joint_indices": idx,
+        "joint_weights": w,
+        "rotations": q,
+        "translations": rng.normal(size=(frames, 6, 3)),
+        "fps": 25.0,
+    }
+    return SkinnedAnimation(**(args | changes))
+
+
+def test_skinned_structure(tmp_path):
+    anim = skinned()
+    path = tmp_path / "a.glb"
+    write_skinned_glb(path, anim)
+    data = path.read_bytes()
+    (_, js), (_, blob) = _chunks(data)
+    gltf = json.loads(js)
+    j = len(PARENTS)
+    # Hierarchy: children lists are the parents array inverted; the scene holds the root and the mesh.
+    for k, node in enumerate(gltf["nodes"][:j]):
+        assert sorted(node.get("children", [])) == np.flatnonzero(PARENTS == k).tolist()
+    mesh_node = gltf["nodes"][j]
+    assert mesh_node == {"name": "body", "mesh": 0, "skin": 0}  # no transform of its own
+    assert gltf["scenes"][0]["nodes"] == [0, j]
+    skin = gltf["skins"][0]
+    assert skin["joints"] == list(range(j)) and skin["skeleton"] == 0
+
+    def acc(i):
+        a = gltf["accessors"][i]
+        view = gltf["bufferViews"][a["bufferView"]]
+        dt = {5121: np.uint8, 5126: np.float32}[a["componentType"]]
+        width = {"SCALAR": 1, "VEC3": 3, "VEC4": 4, "MAT4": 16}[a["type"]]
+        out = np.frombuffer(blob, dt, a["count"] * width, view["byteOffset"])
+        return a, view, out.reshape(a["count"], width)
+
+    a, view, ibm = acc(skin["inverseBindMatrices"])
+    assert "target" not in view
+    np.testing.assert_allclose(
+        ibm.reshape(j, 4, 4).transpose(0, 2, 1) @ anim.bind_matrices, np.tile(np.eye(4), (j, 1, 1)), atol=1e-6
+    )
+    attrs = gltf["meshes"][0]["primitives"][0]["attributes"]
+    assert sorted(attrs) == ["JOINTS_0", "JOINTS_1", "NORMAL", "POSITION", "WEIGHTS_0", "WEIGHTS_1"]
+    joints = np.concatenate([acc(attrs[f"JOINTS_{n}"])[2] for n in (0, 1)], axis=1)
+    weights = np.concatenate([acc(attrs[f"WEIGHTS_{n}"])[2] for n in (0, 1)], axis=1)
+    assert acc(attrs["JOINTS_0"])[0]["componentType"] == 5121
+    assert np.all(np.abs(weights.sum(axis=1, dtype=np.float32) - 1) <= 1.2e-7)
+    assert np.all(weights[:, 5:] == 0) and np.all(joints[:, 5:] == 0)  # padding: joint 0, weight 0
+    assert weights[0, 4] == 0 and joints[0, 4] == 0  # an unused input slot too
+    # The same (joint -> weight) blend as the input, per vertex.
+    dense = np.zeros((8, j))
+    np.add.at(dense, (np.repeat(np.arange(8), 8), joints.ravel()), weights.ravel())
+    ref = np.zeros((8, j))
+    np.add.at(ref, (np.repeat(np.arange(8), 5), anim.joint_indices.ravel()), anim.joint_weights.ravel())
+    np.testing.assert_allclose(dense, ref, atol=1e-7)
+    for name in ("POSITION", "NORMAL", "JOINTS_0", "WEIGHTS_1"):
+        assert acc(attrs[name])[1]["target"] == 34962
+    anim_json = gltf["animations"][0]
+    assert len(anim_json["channels"]) == 2 * j
+    a, view, times = acc(anim_json["samplers"][0]["input"])
+    assert "target" not in view
+    np.testing.assert_allclose(times[:, 0], np.arange(5) / 25.0, rtol=1e-7)
+    assert (a["min"], a["max"]) == ([0.0], [float(np.float32(4) / np.float32(25))])
+    for view in gltf["bufferViews"]:
+        assert view["byteOffset"] % 4 == 0
+
+
+def test_quaternions_keep_their_sign_between_frames(tmp_path):
+    q = np.tile(np.array([0.1, 0.2, 0.3, 0.9]), (6, 6, 1)) * 2.0  # not unit
+    q[1::2] *= -1  # the same rotation, flipped sign every other frame
+    q[:, 2] = [0.0, 0.0, 0.0, 1.0]
+    q[3:, 2] = [0.0, 0.0, 0.0, -1.0]
+    path = tmp_path / "q.glb"
+    write_skinned_glb(path, skinned(frames=6, rotations=q))
+    (_, js), (_, blob) = _chunks(path.read_bytes())
+    gltf = json.loads(js)
+    for ch in gltf["animations"][0]["channels"]:
+        if ch["target"]["path"] != "rotation":
+            continue
+        a = gltf["accessors"][gltf["animations"][0]["samplers"][ch["sampler"]]["output"]]
+        off = gltf["bufferViews"][a["bufferView"]]["byteOffset"]
+        written = np.frombuffer(blob, np.float32, 24, off).reshape(6, 4).astype(np.float64)
+        np.testing.assert_allclose(np.linalg.norm(written, axis=1), 1.0, atol=1e-7)
+        assert np.all(np.einsum("tc,tc->t", written[1:], written[:-1]) > 0)
+        src = q[:, ch["target"]["node"]] / np.linalg.norm(q[:, ch["target"]["node"]], axis=1, keepdims=True)
+        np.testing.assert_allclose(np.abs(np.einsum("tc,tc->t", written, src)), 1.0, atol=1e-6)
+
+
+def test_skinned_passes_the_khronos_validator(tmp_path):
+    if NODE is None or not VALIDATOR.is_dir():
+        pytest.skip("node or the npm gltf-validator is missing (npm install --prefix tests/node gltf-validator)")
+    path = tmp_path / "a.glb"
+    write_skinned_glb(path, skinned(frames=1))  # one frame: a single keyframe is valid too
+    script = Path(__file__).parent / "gltf_validate.js"
+    run = subprocess.run([NODE, str(script), str(path)], capture_output=True, text=True, timeout=120)
+    report = json.loads(run.stdout)
+    assert (report["numErrors"], report["numWarnings"]) == (0, 0), report["messages"]
+
+
+@pytest.mark.parametrize(
+    "changes, name",
+    [
+        ({"joint_names": ("a", "a", "b", "c", "d", "e")}, "joint_names"),
+        ({"parents": np.array([-1, 0, 3, 1, 3, 0])}, "parents"),
+        ({"parents": np.array([-1, 0, 1])}, "parents"),
+        ({"faces": np.array([[0, 1, 8]])}, "faces"),
+        ({"vertices": np.zeros((0, 3))}, "vertices"),
+        ({"bind_matrices": np.zeros((6, 4, 4))}, "bind_matrices"),
+        ({"joint_indices": np.full((8, 5), 6)}, "joint_indices"),
+        ({"joint_weights": np.full((8, 5), 0.5)}, "joint_weights"),
+        ({"rotations": np.zeros((5, 6, 4))}, "rotations"),
+        ({"rotations": np.zeros((5, 6, 3))}, "rotations"),
+        ({"translations": np.zeros((4, 6, 3))}, "translations"),
+        ({"translations": np.full((5, 6, 3), np.nan)}, "translations"),
+        ({"fps": 0.0}, "fps"),
+        ({"fps": True}, "fps"),
+    ],
+)
+def test_bad_skinned_inputs(changes, name):
+    with pytest.raises(ValueError, match=rf"^{name}:") as info:
+        skinned(**changes)
+    assert "\n" not in str(info.value)
+
+
+def test_bad_skinned_write(tmp_path):
+    with pytest.raises(ValueError, match="^animation: expected a SkinnedAnimation, got tuple$"):
+        write_skinned_glb(tmp_path / "a.glb", (np.zeros((3, 3)),))
+    assert list(tmp_path.iterdir()) == []
