@@ -134,11 +134,19 @@ def test_read_unusual_channels_agrees_with_bvhio(tmp_path, newline):
     np.testing.assert_array_equal(m.rotations[:, 3], np.broadcast_to(np.eye(3), (4, 3, 3)))
     np.testing.assert_allclose(m.rotations[:, 0], euler_to_matrix(np.radians(data[:, [0, 2, 4]]), "YZX"), atol=1e-15)
     names, pos_ref, rot_ref = _bvhio_world(path, list(range(4)))
+    assert names == ["pelvis", "spine", "head", "leg"]
     idx = [m.names.index(n) for n in names]
     pos, _ = m.world()
     scale = np.abs(pos_ref).max()
     assert np.abs(pos[:, idx] - pos_ref).max() <= 1e-6 * scale
     assert np.abs(m.rotations[:, idx] - rot_ref).max() <= 1e-6
+
+
+def test_joint_names_may_hold_spaces(tmp_path):
+    text = UNUSUAL.replace("JOINT leg", "JOINT left leg {").replace("\tJOINT left leg {\n\t{", "\tJOINT left leg {")
+    text = text.replace("{frames}", "1").replace("{data}", "0 " * 18)
+    m = read_bvh(_write(tmp_path, text))
+    assert m.names[-2:] == ("left leg", "left leg_End") and m.parents[-2:].tolist() == [0, 4]
 
 
 def test_read_bvh_speed_on_a_real_file():
@@ -183,6 +191,8 @@ HEADER = UNUSUAL.split("MOTION")[0]
         (HEADER + "MOTION\nFrame Time: 0.1\n" + "0 " * 18, "expected 'Frames:'"),
         (HEADER.replace("Xrotation Yrotation Z", "Xrotation Wrotation Z") + "MOTION\n", "got 'Wrotation'"),
         (HEADER.replace("OFFSET 0 10 0.25", "OFFSET 0 nan 0.25") + "MOTION\n", "finite number for OFFSET y"),
+        (HEADER + "ROOT other\n{\n}\nMOTION\n", "line 30: expected MOTION after the root's closing brace, got 'ROOT'"),
+        (HEADER.replace("JOINT spine", "JOINT") + "MOTION\n", "expected a joint name, got '{'"),
     ],
 )
 def test_read_bvh_errors(tmp_path, text, message):

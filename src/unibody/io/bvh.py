@@ -111,6 +111,17 @@ class _Tokens:
             raise ValueError(f"{self.where}: line {line}: expected {word!r}, got {tok!r} (unbalanced braces?)")
         return line
 
+    def name(self, what: str) -> str:
+        """A joint name: the rest of its line (names may hold spaces), up to a '{' there."""
+        tok, line = self.next(what)
+        parts = [tok]
+        while self.i < len(self.toks) and self.toks[self.i][1] == line and self.toks[self.i][0] != "{":
+            parts.append(self.toks[self.i][0])
+            self.i += 1
+        if tok == "{":
+            raise ValueError(f"{self.where}: line {line}: expected {what}, got '{{'")
+        return " ".join(parts)
+
     def number(self, what: str) -> float:
         tok, line = self.next(what)
         try:
@@ -138,7 +149,7 @@ def _parse_hierarchy(lines: list[str], where: str) -> tuple[list[str], list[int]
     total = 0
     # stack of (joint index, is_end_site); a joint is opened by its name then '{'
     stack: list[int] = []
-    pending: tuple[str, bool] | None = (tk.next("the root's name")[0], False)
+    pending: tuple[str, bool] | None = (tk.name("the root's name"), False)
     while True:
         if pending is not None:
             name, end = pending
@@ -179,12 +190,15 @@ def _parse_hierarchy(lines: list[str], where: str) -> tuple[list[str], list[int]
                 tk.expect("}")
                 stack.pop()
         if not stack:
+            if tk.i < len(tk.toks):
+                tok, line = tk.toks[tk.i]
+                raise ValueError(f"{where}: line {line}: expected MOTION after the root's closing brace, got {tok!r}")
             return names, parents, offsets, channels
         tok, line = tk.next("'JOINT', 'End Site' or '}'")
         if tok == "}":
             stack.pop()
         elif tok == "JOINT":
-            pending = (tk.next("a joint name")[0], False)
+            pending = (tk.name("a joint name"), False)
         elif tok == "End":
             tk.expect("Site")
             pending = ("", True)
