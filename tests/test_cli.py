@@ -413,3 +413,26 @@ def test_mocap_label_refuses_wrong_units_and_unlabellable_files(tmp_path, capsys
     assert code == 3 and out == ""
     _one_line_error(err, "apart.npz: no frame could be labelled", "4 of 4 frames")
     assert not (tmp_path / "o.npz").exists()
+
+
+def test_invert_keeps_the_frame_rate(tmp_path, capsys):
+    seq, out = _seq(tmp_path / "seq.npz", 3), tmp_path / "motion.npz"
+    data = dict(np.load(seq))
+    np.savez(seq, **data, fps=np.asarray(120.0))
+    code, _, err = _run(capsys, "invert", seq, "--out", out, "--preset", "fast")
+    assert code == 0, err
+    motion = load_motion(out)
+    assert motion.fps == 120.0 and motion.source == "meshes: seq.npz"
+    np.savez(seq, **data, fps=np.asarray(-5.0))
+    code, _, err = _run(capsys, "invert", seq, "--out", out, "--preset", "fast", "--force")
+    assert code == 3
+    _one_line_error(err, "seq.npz: fps: expected a positive number")
+
+
+def test_pose_writes_the_motion_frame_rate(tmp_path, capsys):
+    motion = _motion(tmp_path / "m.npz", fps=48.0)
+    code, _, err = _run(capsys, "pose", motion, "--out", tmp_path / "meshes.npz")
+    assert code == 0, err
+    from unibody.motion import load_mesh_sequence
+
+    assert load_mesh_sequence(tmp_path / "meshes.npz").fps == 48.0

@@ -196,8 +196,6 @@ def detect(path: str | Path) -> str:
         raise NotAMotion(f"{path}: is a folder")
     with open(path, "rb") as f:
         head = f.read(4096)
-    if not head:
-        raise NotAMotion(f"{path}: empty file; not a motion file")
     if head[:4] in (b"PK\x03\x04", b"PK\x05\x06"):
         try:
             return _npz_format(path)
@@ -206,6 +204,8 @@ def detect(path: str | Path) -> str:
     if head[:6] == b"\x93NUMPY":
         raise NotAMotion(f"{path}: a single .npy array; expected an .npz of named arrays")
     try:
+        if not head:
+            raise NotAMotion(f"{path}: empty file; not a motion file")
         if b"\x00" in head:
             raise NotAMotion(f"{path}: binary content (starts with {head[:8]!r}); not a motion format")
         return _text_format(path, head)
