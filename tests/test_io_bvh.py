@@ -271,8 +271,14 @@ def test_write_bvh_is_atomic_and_checks_its_arguments(tmp_path):
     path.write_text("previous")
     bad_rot = rotations.copy()
     bad_rot[2, 1, 0, 0] = np.nan
+    scaled = rotations.copy()
+    scaled[3, 2] *= 1.01
+    mirrored = rotations.copy()
+    mirrored[1, 4] *= -1.0
     cases = [
         (dict(rotations=bad_rot), "rotations: expected finite values"),
+        (dict(rotations=scaled), "non-rotation at frame 3, joint 'head'"),
+        (dict(rotations=mirrored), "non-rotation at frame 1, joint 'l_foot'"),
         (dict(rotations=rotations[:, :3]), "rotations: expected shape (*, 7, 3, 3)"),
         (dict(root_positions=root[:2]), "root_positions: expected shape (4, 3)"),
         (dict(parents=np.array([0, 0, 1, 0, 3, 0, 1])), "parents: expected -1 for the root"),

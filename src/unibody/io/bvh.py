@@ -400,6 +400,10 @@ def write_bvh(
     t = rot.shape[0]
     if not 0 < t <= MAX_FRAMES:
         raise ValueError(f"rotations: expected 1..{MAX_FRAMES} frames, got {t}")
+    err = np.abs(np.swapaxes(rot, -1, -2) @ rot - np.eye(3)).max(axis=(-2, -1)) + (np.linalg.det(rot) <= 0)
+    if err.max() > 1e-4:
+        f, k = np.unravel_index(int(np.argmax(err)), err.shape)
+        raise ValueError(f"rotations: expected rotation matrices, got a non-rotation at frame {f}, joint {names[k]!r}")
     root = _check_array(root_positions, (t, 3), "root_positions")
     if isinstance(fps, bool) or not isinstance(fps, int | float | np.floating | np.integer) or not 0 < fps <= 1e5:
         raise ValueError(f"fps: expected a positive number (at most 100000), got {fps!r}")
