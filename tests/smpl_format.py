@@ -239,7 +239,7 @@ def canonical_model(family: str, *, seed: int = 0, num_shape: int = 16) -> tuple
     if family == "smplx" and num_shape == 10:
         dirs = np.concatenate([dirs, rng.normal(scale=1e-4, size=dirs.shape)], axis=2)
     # transfer: the tetrahedron of the three nearest template vertices of every canonical vertex
-    near = _nearest(bind, v, tree)
+    near = _nearest(bind, v, tree, subset, layer.faces.numpy())
     fv = torch.from_numpy(near)
     vt = torch.from_numpy(v)
     w = tet_barycentric(torch.from_numpy(bind), lift_tetrahedra(vt, fv))
@@ -272,16 +272,31 @@ def _pca_layer():
     return _LAYER[0]
 
 
-def _nearest(points: np.ndarray, candidates: np.ndarray, tree: cKDTree) -> np.ndarray:
-    """(N, 3) a well-shaped triangle of near candidates per point: the nearest, and the pair of
-    the next 7 that spans the largest triangle with it."""
-    _, ids = tree.query(points, k=8)
+def _nearest(points: np.ndarray, candidates: np.ndarray, tree: cKDTree, subset: np.ndarray, faces: np.ndarray):
+    """(N, 3) a well-shaped triangle of near candidates per point, within three rings of it on the
+    canonical mesh (never across a gap, e.g. onto the next finger): the nearest, and the pair of
+    the next ones that spans the largest triangle with it."""
+    from scipy import sparse
+
+    n = len(points)
+    rows = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2], np.arange(n)])
+    cols = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0], np.arange(n)])
+    a = sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    a = ((a + a.T) > 0).astype(np.float64)
+    ring = ((a @ a @ a) > 0).tocsr()
+    _, ids = tree.query(points, k=12)
+    near = np.asarray(ring[np.repeat(np.arange(n), 12), subset[ids].reshape(-1)]).reshape(n, 12) > 0
+    near[:, :3] |= near.sum(1, keepdims=True) < 3  # isolated points keep their plain nearest ones
+    order = np.argsort(~near, axis=1, kind="stable")[:, :8]  # valid candidates first, by distance
+    ids = np.take_along_axis(ids, order, 1)
     p = candidates[ids]  # (N, 8, 3)
     e = p[:, 1:] - p[:, :1]
     area = np.linalg.norm(np.cross(e[:, :, None], e[:, None, :]), axis=-1)  # (N, 7, 7)
-    best = area.reshape(len(points), -1).argmax(1)
-    a, b = np.unravel_index(best, (7, 7))
-    return np.stack([ids[:, 0], ids[np.arange(len(points)), a + 1], ids[np.arange(len(points)), b + 1]], 1)
+    valid = np.take_along_axis(near, order, 1)[:, 1:]
+    area *= valid[:, :, None] & valid[:, None, :]
+    best = area.reshape(n, -1).argmax(1)
+    i, j = np.unravel_index(best, (7, 7))
+    return np.stack([ids[:, 0], ids[np.arange(n), i + 1], ids[np.arange(n), j + 1]], 1)
 
 
 # --- stand-ins for chumpy and scipy objects ------------------------------------------------------------------
