@@ -48,7 +48,7 @@ def exported(tmp_path_factory) -> tuple[Motion, Path, np.ndarray]:
         pose.astype(np.float32), transl.astype(np.float32), fps=50.0, identity=identity, identity_backend="pca"
     )
     path = tmp_path_factory.mktemp("bvh") / "take.bvh"
-    write_bvh(motion, path, ConvertOptions())
+    write_bvh(motion, path, ConvertOptions(dtype="float64"))  # one layer for the export and the reference
     layer, prepared = body_for(motion, torch.float64)
     with torch.no_grad():
         out = layer.pose(
@@ -105,9 +105,8 @@ def test_offsets_are_the_identitys_tpose_in_centimetres(exported):
     assert is_canonical_bvh(m)
     pos, _ = m.world()
     idx = [m.names.index(n) for n in CANONICAL_BVH_NAMES]
-    # frame 0 is the T-pose: the file's rest offsets placed at transl reproduce it (the export
-    # posed the T-pose in float32, the reference in float64: a few micrometres)
-    np.testing.assert_allclose(pos[0, idx] / 100.0, joints[0, 1:], atol=1e-5)
+    # frame 0 is the T-pose: the file's rest offsets placed at transl reproduce it
+    np.testing.assert_allclose(pos[0, idx] / 100.0, joints[0, 1:], atol=1e-7)
     # the identity matters: the mean body's T-pose differs by far more than the tolerance
     layer, mean = body_for(Motion(motion.pose[:1], motion.transl[:1]), torch.float64)
     with torch.no_grad():
