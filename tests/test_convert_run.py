@@ -142,14 +142,17 @@ def test_plan_mirrors_folders_skips_other_files_and_splits_into_shards(tmp_path)
 # --------------------------------------------------------------------------- executors
 
 
-def _check_outputs(out: Path, takes: list[Path], src: Path) -> None:
+def _check_outputs(out: Path, takes: list[Path], src: Path, soma: bool = True) -> None:
     for take in takes:
         rel = take.relative_to(src)
         expected = load_motion(take)
-        got = read_soma(out / rel.parent / (take.stem + ".soma.npz"), OPTS).motion
+        got = load_motion(out / rel.parent / (take.stem + ".motion.npz"))
         np.testing.assert_array_equal(got.pose, expected.pose)
+        np.testing.assert_array_equal(got.transl, expected.transl)
         assert got.fps == pytest.approx(expected.fps)
-        assert load_motion(out / rel.parent / (take.stem + ".motion.npz")).pose.shape == expected.pose.shape
+        if soma:
+            np.testing.assert_array_equal(read_soma(out / rel.parent / (take.stem + ".soma.npz"), OPTS).motion.pose,
+                                          expected.pose)  # fmt: skip
 
 
 def test_shards_cover_the_set_exactly_once(tmp_path):
@@ -168,9 +171,9 @@ def test_shards_cover_the_set_exactly_once(tmp_path):
 def test_jobs_2_runs_the_same_task_in_spawned_workers(tmp_path):
     src, out = tmp_path / "in", tmp_path / "out"
     takes = _folder(src, 4)
-    summary = run([src], ["motion", "soma"], out, jobs=2, progress=False)
+    summary = run([src], ["motion"], out, jobs=2, progress=False)  # motion only: the workers need no rig
     assert (summary.converted, summary.failed, summary.frames) == (4, 0, 3 + 4 + 5 + 6)
-    _check_outputs(out, takes, src)
+    _check_outputs(out, takes, src, soma=False)
 
 
 def test_ray_executor_on_a_local_ray_with_2_cpus(tmp_path, monkeypatch):
@@ -178,9 +181,9 @@ def test_ray_executor_on_a_local_ray_with_2_cpus(tmp_path, monkeypatch):
     monkeypatch.delenv("RAY_ADDRESS", raising=False)
     src, out = tmp_path / "in", tmp_path / "out"
     takes = _folder(src, 3)
-    summary = run([src], ["motion", "soma"], out, jobs=2, executor="ray", progress=False)
+    summary = run([src], ["motion"], out, jobs=2, executor="ray", progress=False)
     assert (summary.converted, summary.failed) == (3, 0)
-    _check_outputs(out, takes, src)
+    _check_outputs(out, takes, src, soma=False)
     report = json.loads((out / "convert_report.json").read_text())
     assert report["summary"]["executor"] == "ray" and all(r["status"] == "ok" for r in report["files"])
 
@@ -233,3 +236,30 @@ def test_killed_run_resumes_with_only_what_is_missing(tmp_path):
     assert not journal.exists()
     again = run([src], ["motion", "soma"], out, progress=False)  # a third run has nothing to do
     assert (again.converted, again.done_before) == (0, 8)
+
+
+def test_output_folder_inside_the_inputs_never_replaces_a_users_file(tmp_path):
+    data = tmp_path / "data"
+    a = _folder(data, 1)[0]  # data/s0/take0.npz
+    mine = data / "s0" / "take1.npz"
+    save_motion(mine, _motion(5))
+    users = data / "s0" / "take1.motion.npz"  # the user's own file where take1's output would go
+    save_motion(users, _motion(6))
+    before = users.read_bytes()
+    first = run([data], ["motion"], data, force=True, progress=False)
+    # The user's file is an input: the two inputs that meet keep their suffixes, nothing is replaced.
+    assert users.read_bytes() == before and (first.converted, first.failed) == (3, 0)
+    names = sorted(p.name for p in (data / "s0").iterdir())
+    assert names == sorted(["take0.npz", "take0.motion.npz", "take1.npz", "take1.npz.motion.npz", users.name,
+                            "take1.motion.npz.motion.npz"])  # fmt: skip
+    second = run([data], ["motion"], data, progress=False)  # our outputs are known as outputs now, not inputs
+    assert (second.done_before, second.converted, second.failed, second.skipped) == (3, 0, 0, 3)
+    assert users.read_bytes() == before
+    report = {Path(r["input"]).name: r for r in json.loads((data / "convert_report.json").read_text())["files"]}
+    assert report["take0.motion.npz"]["status"] == "skipped" and report[a.name]["status"] == "ok"
+    assert report[users.name]["status"] == "ok" and report[mine.name]["status"] == "ok"
+    # Two files of one name given directly would write the same output: both refused, nothing written.
+    other = tmp_path / "other" / "take0.npz"
+    save_motion(other.parent.mkdir() or other, _motion(7))
+    tasks, _ = plan([a, other], ["motion"], tmp_path / "o")
+    assert tasks[0].error is None and "would write the same outputs" in tasks[1].error

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ..io.atomic import atomic_write
 
-__all__ = ["REPORT_FORMAT", "Journal", "load_records", "report_paths", "write_report"]
+__all__ = ["REPORT_FORMAT", "Journal", "load_records", "report_paths", "write_report", "written_outputs"]
 
 REPORT_FORMAT = "unibody.convert_report/1"
 _BASE = ("input", "format", "status", "outputs", "frames", "fps", "seconds", "warnings", "error")
@@ -106,3 +106,27 @@ def write_report(out: Path, records: dict[str, dict], summary: dict, shard: tupl
     with atomic_write(csv_path, "w") as f:
         f.write(_csv(rows))
     return json_path
+
+
+def written_outputs(out: Path) -> set[str]:
+    """Every output path any earlier run (any shard) recorded in ``out``'s reports and journals."""
+    paths: set[str] = set()
+    for name in sorted(os.listdir(out)) if out.is_dir() else []:
+        if not name.startswith("convert_report") or not name.endswith((".json", ".journal")):
+            continue
+        try:
+            text = (out / name).read_text()
+            rows = json.loads(text)["files"] if name.endswith(".json") else []
+        except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError):
+            continue
+        if name.endswith(".journal"):
+            for line in text.splitlines():
+                try:
+                    rows.append(json.loads(line))
+                except ValueError:
+                    continue
+        for row in rows:
+            if isinstance(row, dict):
+                paths.update(o.get("path") for o in row.get("outputs") or [] if isinstance(o, dict))
+    paths.discard(None)
+    return paths

@@ -24,7 +24,7 @@ from pathlib import Path
 from ..io.atomic import OutputError, file_sha256, output_lock
 from ._types import ConvertOptions
 from .formats import FORMATS, WRITERS, NotAMotion, detect, output_name, reader, writer
-from .report import Journal, load_records, report_paths, write_report
+from .report import Journal, load_records, report_paths, write_report, written_outputs
 
 __all__ = ["RunSummary", "Task", "convert_file", "plan", "run"]
 
@@ -123,6 +123,7 @@ def plan(
     *,
     source: str | None = None,
     shard: tuple[int, int] | None = None,
+    written: frozenset[str] | set[str] = frozenset(),
 ) -> tuple[list[Task], list[dict]]:
     """The tasks of a run (this shard's) and the files left out as not motion files.
 
@@ -133,6 +134,9 @@ def plan(
         out: the output folder; an input's outputs mirror its path relative to its folder.
         source: the input format for every file (``--from``), else detected per file.
         shard: ``(i, N)``: only every N-th task of the sorted list, from the i-th.
+        written: outputs earlier runs wrote (real paths, from the reports in ``out``): a file
+            found in a folder that is one of them is not an input. Any other file found there
+            stays an input, and an input whose output it would be fails instead.
 
     Raises:
         FileNotFoundError: an input does not exist.
@@ -146,9 +150,12 @@ def plan(
     out_real = os.path.realpath(out)
     for key in sorted(found):
         path, rel, explicit = found[key]
+        if key in written and not explicit:
+            skipped.append({"input": key, "status": "skipped", "error": f"{key}: an earlier run's output"})
+            continue
         fmt, error, skip = _classify(path, explicit, source)
         if skip is not None:
-            skipped.append({"input": key, "status": "skipped", "error": skip, "outputs": []})
+            skipped.append({"input": key, "status": "skipped", "error": skip})
         else:
             classified[key] = (rel, fmt, error)
     # Inputs that would write the same output keep their own suffix in the output's name.
@@ -160,16 +167,20 @@ def plan(
         key: tuple((fmt, os.path.join(out_real, output_name(rel, fmt, key in clash))) for fmt in to)
         for key, (rel, _, _) in classified.items()
     }
-    all_outputs = {p: key for key, outs in planned.items() for _, p in outs}
+    all_outputs: dict[str, str] = {}
+    for key, outs in planned.items():
+        for _, p in outs:
+            all_outputs.setdefault(p, key)
     explicit = {key for key, (_, _, given) in found.items() if given}
     for key, (_, fmt, error) in classified.items():
-        owner = all_outputs.get(key)
-        if owner is not None and owner != key and key not in explicit:  # an earlier run's output, not an input
-            skipped.append({"input": key, "status": "skipped", "error": f"{key}: an output of {owner}", "outputs": []})
-            continue
-        hit = next((p for _, p in planned[key] if p == key or p in explicit), None)
+        hit = next(
+            (p for _, p in planned[key] if p == key or (p in classified and (p not in written or p in explicit))), None
+        )
         if error is None and hit is not None:
             error = f"--out: {hit} is an input file; name another --out"
+        twin = next((all_outputs[p] for _, p in planned[key] if all_outputs[p] != key), None)
+        if error is None and twin is not None:  # e.g. a/walk.npz and b/walk.npz given as files
+            error = f"--out: {key} and {twin} would write the same outputs; convert them into separate --out folders"
         tasks.append(Task(key, fmt, planned[key], error))
     if shard is not None:
         tasks = tasks[shard[0] :: shard[1]]
@@ -391,13 +402,17 @@ def run(
     if out.exists() and not out.is_dir():
         raise OutputError(f"--out: {out} is a file; name a folder")
     t0 = time.perf_counter()
-    tasks, skipped = plan(inputs, to, out, source=source, shard=shard)
+    inputs = [Path(p) for p in inputs]
+    missing = next((p for p in inputs if not p.exists()), None)
+    if missing is not None:
+        raise FileNotFoundError(f"{missing}: no such file or folder")
     out.mkdir(parents=True, exist_ok=True)
     json_path, _, journal_path = report_paths(out, shard)
     with output_lock(json_path):
         records, notes = load_records(out, shard)
         for note in notes:
             _warnings.warn(note, stacklevel=2)
+        tasks, skipped = plan(inputs, to, out, source=source, shard=shard, written=written_outputs(out))
         todo, done_before = [], 0
         for task in tasks:
             if not force and _verified(task, records.get(task.input)):
@@ -407,19 +422,23 @@ def run(
         for s in skipped:
             records[s["input"]] = s
         journal = Journal(journal_path)
-        journal.append(*(_record(t, "running") for t in todo if not t.error))
-        results = _execute(todo, options, jobs, executor, progress, journal, records, on_error)
-        summary = _finish(results, done_before, len(skipped), time.perf_counter() - t0, json_path)
-        write_report(out, records, _summary_dict(summary, to, jobs, executor, shard), shard)
-        journal.remove()
+        started = [_record(t, "running") for t in todo if not t.error]
+        records.update((r["input"], r) for r in started)
+        journal.append(*started)
+        results: list[dict] = []
+        try:
+            _execute(todo, options, jobs, executor, progress, journal, records, results, on_error)
+        finally:  # also on Ctrl-C: the report says what was done, the rerun does the rest
+            summary = _finish(results, done_before, len(skipped), time.perf_counter() - t0, json_path)
+            write_report(out, records, _summary_dict(summary, to, jobs, executor, shard), shard)
+            journal.remove()
     return summary
 
 
-def _execute(todo, options, jobs, executor, progress, journal, records, on_error) -> list[dict]:
-    """Run the tasks, journal each record as it comes, show progress; the report is written on interrupt too."""
+def _execute(todo, options, jobs, executor, progress, journal, records, results, on_error) -> None:
+    """Run the tasks; each record goes to ``records``, ``results`` and the journal as it comes."""
     from tqdm import tqdm
 
-    results: list[dict] = []
     bar = tqdm(total=len(todo), unit="file", desc="convert", file=sys.stderr, disable=not progress or not todo,
                dynamic_ncols=True, mininterval=0.5)  # fmt: skip
     t0 = time.perf_counter()
@@ -440,7 +459,6 @@ def _execute(todo, options, jobs, executor, progress, journal, records, on_error
             bar.update(1)
     finally:
         bar.close()
-    return results
 
 
 def _finish(results: list[dict], done_before: int, skipped: int, seconds: float, report: Path) -> RunSummary:
