@@ -263,3 +263,24 @@ def test_output_folder_inside_the_inputs_never_replaces_a_users_file(tmp_path):
     save_motion(other.parent.mkdir() or other, _motion(7))
     tasks, _ = plan([a, other], ["motion"], tmp_path / "o")
     assert tasks[0].error is None and "would write the same outputs" in tasks[1].error
+
+
+def test_ctrl_c_writes_the_report_and_the_rerun_finishes(tmp_path):
+    src, out = tmp_path / "in", tmp_path / "out"
+    _folder(src, 6)
+    proc = subprocess.Popen([sys.executable, "-c", SLOW, "convert", str(src), "--to", "motion", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    journal = out / "convert_report.journal"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if journal.exists() and '"status": "ok"' in journal.read_text():
+            break
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "unibody: interrupted" in stderr and "Traceback" not in stderr, stderr
+    report = json.loads((out / "convert_report.json").read_text())
+    status = [r["status"] for r in report["files"]]
+    assert 1 <= status.count("ok") < 6 and set(status) <= {"ok", "running"} and not journal.exists()
+    summary = run([src], ["motion"], out, progress=False)
+    assert summary.done_before == status.count("ok") and summary.done_before + summary.converted == 6

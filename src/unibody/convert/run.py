@@ -326,11 +326,20 @@ def _local(tasks: list[Task], options: ConvertOptions, jobs: int) -> Iterator[di
     threads = _threads(jobs)
     pool = ProcessPoolExecutor(max_workers=min(jobs, len(tasks)), mp_context=multiprocessing.get_context("spawn"))
     try:
-        futures = [pool.submit(convert_file, t, options, threads) for t in tasks]
+        futures = {pool.submit(convert_file, t, options, threads): t for t in tasks}
         for fut in as_completed(futures):
-            yield fut.result()
+            try:
+                yield fut.result()
+            except Exception as exc:  # noqa: BLE001 - a worker that died (killed, out of memory): that file failed
+                yield _died(futures[fut], exc)
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _died(task: Task, exc: BaseException) -> dict:
+    record = _record(task, "failed")
+    record["error"] = f"{task.input}: the worker running it died ({type(exc).__name__}: {str(exc)[:200]})"
+    return record
 
 
 RAY_MISSING = "--executor ray needs Ray: pip install 'unibody[ray]'"
@@ -350,10 +359,14 @@ def _ray(tasks: list[Task], options: ConvertOptions, jobs: int) -> Iterator[dict
             ray.init(num_cpus=jobs, include_dashboard=False, log_to_driver=False)
     try:
         remote = ray.remote(num_cpus=1, max_retries=1)(convert_file)
-        pending = [remote.remote(t, options, 1) for t in tasks]
+        refs = {remote.remote(t, options, 1): t for t in tasks}
+        pending = list(refs)
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
-            yield ray.get(done[0])
+            try:
+                yield ray.get(done[0])
+            except Exception as exc:  # noqa: BLE001 - a worker or node lost: that file failed
+                yield _died(refs[done[0]], exc)
     finally:
         if started:
             ray.shutdown()
