@@ -236,7 +236,9 @@ def convert_file(task: Task, options: ConvertOptions, threads: int | None = None
         if task.error:
             raise ValueError(task.error)
         with _warnings.catch_warnings(record=True) as caught:
-            _warnings.simplefilter("always")
+            _warnings.simplefilter("always")  # every file's own warnings, also ones seen before in this process
+            _warnings.filterwarnings("ignore", category=DeprecationWarning)
+            _warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")  # torch's notice
             converted = reader(task.format)(Path(task.input), options)
             motion = converted.motion
             record.update(frames=int(len(motion.pose)), fps=float(motion.fps), stats=dict(converted.stats))
