@@ -320,7 +320,8 @@ def solve_meshes(
         stop = min(start + batch, frames)
         target = meshes(start, stop)
         t0 = time.perf_counter()
-        result = inv.invert(target, prepared)
+        with torch.enable_grad() if inv.config.method == "autograd" else torch.no_grad():
+            result = inv.invert(target, prepared)
         times["time_inversion_s"] = times.get("time_inversion_s", 0.0) + time.perf_counter() - t0
         poses.append(result.pose.detach().cpu().numpy().astype(np.float32))
         transl.append(result.transl.detach().cpu().numpy().astype(np.float32))
@@ -405,10 +406,16 @@ def read_amass(path: Path, options: ConvertOptions) -> Converted:
 
 
 def pca_identity(layer: BodyLayer, prepared) -> tuple[np.ndarray, float]:
-    """Native PCA coefficients of a prepared rest shape (reposed to the bind pose) and the fit's mean error, mm."""
+    """Native PCA coefficients of a prepared rest shape, and the fit's mean error in mm.
+
+    The rest shape is reposed to the bind pose, its centroid moved onto the PCA mean's, and
+    projected by least squares (a rest shape may sit anywhere: SMPL's origin is near the
+    pelvis, an estimated one at the posed Hips; the motion's ``transl`` places the body).
+    """
     with torch.no_grad():
         bind = layer.repose_to_bind(prepared)
+        mean = layer.identity(layer.identity.default_params(1).to(bind))
+        bind = bind - bind.mean(1, keepdim=True) + mean.mean(1, keepdim=True)
         coeffs = layer.identity.project(bind)
-        fit = layer.identity(coeffs)
-        err = float(torch.linalg.vector_norm(fit - bind, dim=-1).mean()) * 1000
+        err = float(torch.linalg.vector_norm(layer.identity(coeffs) - bind, dim=-1).mean()) * 1000
     return coeffs[0].cpu().numpy().astype(np.float32), err
