@@ -166,6 +166,8 @@ def test_shards_cover_the_set_exactly_once(tmp_path):
     inputs = [r["input"] for rep in reports for r in rep["files"]]
     assert sorted(inputs) == sorted(os.path.realpath(t) for t in takes)
     assert not list(out.glob("*.journal"))
+    whole = run([src], ["motion", "soma"], out, progress=False)  # the shards' work counts for an unsharded rerun
+    assert (whole.done_before, whole.converted, whole.failed) == (5, 0, 0)
 
 
 def test_jobs_2_runs_the_same_task_in_spawned_workers(tmp_path):

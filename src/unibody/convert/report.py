@@ -16,11 +16,12 @@ import csv
 import io
 import json
 import os
+import re
 from pathlib import Path
 
 from ..io.atomic import atomic_write
 
-__all__ = ["REPORT_FORMAT", "Journal", "load_records", "report_paths", "write_report", "written_outputs"]
+__all__ = ["REPORT_FORMAT", "Journal", "all_records", "load_records", "report_paths", "write_report"]
 
 REPORT_FORMAT = "unibody.convert_report/1"
 _BASE = ("input", "format", "status", "outputs", "frames", "fps", "seconds", "warnings", "error")
@@ -108,25 +109,19 @@ def write_report(out: Path, records: dict[str, dict], summary: dict, shard: tupl
     return json_path
 
 
-def written_outputs(out: Path) -> set[str]:
-    """Every output path any earlier run (any shard) recorded in ``out``'s reports and journals."""
-    paths: set[str] = set()
+def all_records(out: Path, shard: tuple[int, int] | None = None) -> dict[str, dict]:
+    """Records of every report in ``out`` (the whole run's and each shard's), ``shard``'s own last.
+
+    What any earlier run of this folder finished or wrote, whatever its sharding: finished files
+    are not redone and the files it wrote are known as outputs, not inputs.
+    """
+    found = set()
     for name in sorted(os.listdir(out)) if out.is_dir() else []:
-        if not name.startswith("convert_report") or not name.endswith((".json", ".journal")):
-            continue
-        try:
-            text = (out / name).read_text()
-            rows = json.loads(text)["files"] if name.endswith(".json") else []
-        except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError):
-            continue
-        if name.endswith(".journal"):
-            for line in text.splitlines():
-                try:
-                    rows.append(json.loads(line))
-                except ValueError:
-                    continue
-        for row in rows:
-            if isinstance(row, dict):
-                paths.update(o.get("path") for o in row.get("outputs") or [] if isinstance(o, dict))
-    paths.discard(None)
-    return paths
+        m = re.fullmatch(r"convert_report(?:\.(\d+)of(\d+))?\.(?:json|journal)", name)
+        if m:
+            found.add(None if m.group(1) is None else (int(m.group(1)), int(m.group(2))))
+    records: dict[str, dict] = {}
+    for key in sorted(found - {shard}, key=str):
+        records.update(load_records(out, key)[0])
+    records.update(load_records(out, shard)[0])
+    return records

@@ -24,7 +24,7 @@ from pathlib import Path
 from ..io.atomic import OutputError, file_sha256, output_lock
 from ._types import ConvertOptions
 from .formats import FORMATS, WRITERS, NotAMotion, detect, output_name, reader, writer
-from .report import Journal, load_records, report_paths, write_report, written_outputs
+from .report import Journal, all_records, load_records, report_paths, write_report
 
 __all__ = ["RunSummary", "Task", "convert_file", "plan", "run"]
 
@@ -295,13 +295,12 @@ def _verified(task: Task, record: dict | None) -> bool:
     return True
 
 
-def _refuse_unknown_outputs(task: Task, record: dict | None, force: bool) -> Task:
-    """``task`` with an error if it would replace a file no earlier run of this report wrote."""
+def _refuse_unknown_outputs(task: Task, written: set[str], force: bool) -> Task:
+    """``task`` with an error if it would replace a file that no earlier run in ``--out`` wrote."""
     if force or task.error:
         return task
-    ours = {o.get("path") for o in (record or {}).get("outputs") or []}
     for _, path in task.outputs:
-        if os.path.lexists(path) and path not in ours:
+        if os.path.lexists(path) and path not in written:
             return Task(task.input, task.format, task.outputs, f"--out: {path} exists; pass --force to replace it")
     return task
 
@@ -427,13 +426,15 @@ def run(
         records, notes = load_records(out, shard)
         for note in notes:
             _warnings.warn(note, stacklevel=2)
-        tasks, skipped = plan(inputs, to, out, source=source, shard=shard, written=written_outputs(out))
+        known = all_records(out, shard)  # any earlier run's, whatever its sharding
+        written = {o["path"] for r in known.values() for o in r.get("outputs") or [] if o.get("path")}
+        tasks, skipped = plan(inputs, to, out, source=source, shard=shard, written=written)
         todo, done_before = [], 0
         for task in tasks:
-            if not force and _verified(task, records.get(task.input)):
+            if not force and _verified(task, known.get(task.input)):
                 done_before += 1
             else:
-                todo.append(_refuse_unknown_outputs(task, records.get(task.input), force))
+                todo.append(_refuse_unknown_outputs(task, written, force))
         for s in skipped:
             records[s["input"]] = s
         journal = Journal(journal_path)
