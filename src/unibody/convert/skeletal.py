@@ -128,13 +128,13 @@ def _override(best: dict[int, str], names: tuple[str, ...], path: Path, where: s
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"{path}: expected a JSON object {{source name: canonical name or null}}, got {exc}") from None
-    ok = isinstance(data, dict) and all(isinstance(k, str) and (v is None or isinstance(v, str)) for k, v in data.items())
-    if not ok:
-        raise ValueError(f"{path}: expected a JSON object {{source name: canonical name or null}}, got {type(data).__name__}")
+    form = "a JSON object {source name: canonical name or null}"
+    if not isinstance(data, dict) or not all(v is None or isinstance(v, str) for v in data.values()):
+        raise ValueError(f"{path}: expected {form}, got {json.dumps(data)[:80]}")
     index = {n: i for i, n in enumerate(names)}
     missing = [k for k in data if k not in index]
     if missing:
-        raise ValueError(f"{path}: joints {missing} are not in the skeleton of {where or 'the file'}(it has {len(names)})")
+        raise ValueError(f"{path}: expected joints of the skeleton of {where or 'the file'}got {missing} (not in it)")
     unknown = [v for v in data.values() if v is not None and v not in JOINT_NAMES[1:]]
     if unknown:
         raise ValueError(f"{path}: expected canonical joint names (unibody.JOINT_NAMES[1:]) or null, got {unknown}")
@@ -177,9 +177,8 @@ def metres_per_unit(sk: SkeletalMotion, units: str | None, where: str) -> float:
         m = h * UNITS[units]
         if not _HEIGHT_OK[0] <= m <= _HEIGHT_OK[1]:
             hint = f"; the file is likely in {guess}" if guess else ""
-            raise ValueError(
-                f"{where}units {units!r} make the skeleton {m:.4g} m tall (expected {_HEIGHT_OK[0]}-{_HEIGHT_OK[1]} m){hint}"
-            )
+            lo, hi = _HEIGHT_OK
+            raise ValueError(f"{where}units {units!r} make the skeleton {m:.4g} m tall (expected {lo}-{hi} m){hint}")
         return UNITS[units]
     if sk.meters_per_unit is not None:
         m = h * sk.meters_per_unit

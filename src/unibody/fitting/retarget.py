@@ -157,7 +157,6 @@ def fit_bone_lengths(
     a = torch.tensor([mapped[i] for i, _ in bones], dtype=torch.long)
     b = torch.tensor([mapped[j] for _, j in bones], dtype=torch.long)
     target = lengths.double()
-    scale = target.clamp_min(0.02)
 
     def full(c: torch.Tensor) -> torch.Tensor:
         return torch.cat([c.to(ref), ref.new_zeros(k_all - k)])
@@ -172,28 +171,43 @@ def fit_bone_lengths(
         return pos[0], (pos[1:] - pos[0]) / step.double()[:, None, None]
 
     c = lo.new_zeros(k)
-    if bones:
-        for _ in range(2):
-            base, jac = joints_at(c)
-            c0 = c.clone()
-            z = torch.logit(((c0 - lo) / (hi - lo)).clamp(1e-4, 1 - 1e-4)).requires_grad_(True)
-            opt = torch.optim.LBFGS([z], lr=1, max_iter=config.identity_steps, line_search_fn="strong_wolfe")
-
-            def closure() -> torch.Tensor:
-                opt.zero_grad()
-                cc = lo + (hi - lo) * torch.sigmoid(z)
-                pos = base + torch.einsum("k,kjd->jd", cc - c0, jac)
-                length = torch.linalg.vector_norm(pos[a] - pos[b], dim=-1)
-                loss = ((length - target) / scale).square().mean() + 1e-4 * (cc / config.max_coeff).square().mean()
-                loss.backward()
-                return loss
-
-            opt.step(closure)
-            c = (lo + (hi - lo) * torch.sigmoid(z)).detach()
+    for _ in range(2 if bones else 0):
+        base, jac = joints_at(c)
+        c = _fit_linear(base, jac, c, lo, hi, a, b, target, config)
     params = full(c)
     with torch.no_grad():
         pos, _ = _tpose_joints(layer, layer.prepare_identity(params[None]))
         return params, torch.linalg.vector_norm(pos[0, a] - pos[0, b], dim=-1) - target.to(ref)
+
+
+def _fit_linear(
+    base: torch.Tensor,
+    jac: torch.Tensor,
+    c0: torch.Tensor,
+    lo: torch.Tensor,
+    hi: torch.Tensor,
+    a: torch.Tensor,
+    b: torch.Tensor,
+    target: torch.Tensor,
+    config: RetargetConfig,
+) -> torch.Tensor:
+    """Coefficients (k,) in [lo, hi] fitting the distances |pos_a - pos_b| to ``target`` with the
+    joints linearised at ``c0`` (pos = base + (c - c0) jac); L-BFGS on logits, a weak prior."""
+    scale = target.clamp_min(0.02)
+    z = torch.logit(((c0 - lo) / (hi - lo)).clamp(1e-4, 1 - 1e-4)).requires_grad_(True)
+    opt = torch.optim.LBFGS([z], lr=1, max_iter=config.identity_steps, line_search_fn="strong_wolfe")
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad()
+        c = lo + (hi - lo) * torch.sigmoid(z)
+        pos = base + torch.einsum("k,kjd->jd", c - c0, jac)
+        length = torch.linalg.vector_norm(pos[a] - pos[b], dim=-1)
+        loss = ((length - target) / scale).square().mean() + 1e-4 * (c / config.max_coeff).square().mean()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    return (lo + (hi - lo) * torch.sigmoid(z)).detach()
 
 
 def _solve_structure(layer: BodyLayer, mapped: list[int], has_rot: bool):
@@ -283,7 +297,7 @@ def retarget(
     parents_list = [int(p) for p in layer.rig_tree.parents]
     bones = _bones(parents_list, mapped)
     offsets = positions.new_zeros(m, 3)
-    targets = positions
+    targets = reached = positions
     rounds = 1 + (cfg.offset_rounds if offset_frames is not None else 0)
     for r in range(rounds):
         if r:  # the mean residual of each joint in its source frame: a fixed offset between definitions
@@ -318,7 +332,9 @@ def _check_frames(x: torch.Tensor, name: str) -> None:
         raise ValueError(f"{name}: expected finite values, got NaN/inf in {len(idx)} frame(s): {shown}")
 
 
-def _torso_rotation(mapped: list[int], names: tuple[str, ...], canon: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
+def _torso_rotation(
+    mapped: list[int], names: tuple[str, ...], canon: torch.Tensor, source: torch.Tensor
+) -> torch.Tensor:
     """Rotation (..., 3, 3) taking the canonical torso (M, 3) onto the source's (..., M, 3), Kabsch."""
     cols = [i for i, c in enumerate(mapped) if names[c] in _TORSO]
     if len(cols) < 3:
@@ -493,15 +509,11 @@ class _Solver:
         m = len(self.mapped)
         for _ in range(iters):
             q = g_pos[:, self.mapped_t[self.pair_col]] - g_pos[:, self.pair_joint]  # (B, P, 3)
-            jp = pos.new_zeros(b, m, 3, 1 + self.n_groups, 3)
-            jp[:, :, :, 0] = torch.eye(3, dtype=pos.dtype, device=pos.device)
-            blocks = -skew(q)  # (B, P, 3, 3)
-            flat = jp.view(b, m, 3, (1 + self.n_groups) * 3)
-            for_idx = jp.new_zeros(b, m * (1 + self.n_groups), 3, 3)
-            for_idx.index_add_(1, self.pair_col * (1 + self.n_groups) + 1 + self.pair_group, blocks)
-            jp = for_idx.view(b, m, 1 + self.n_groups, 3, 3).transpose(2, 3).reshape(b, 3 * m, self.n)
+            # d p_c / d w_g = -[p_c - g_k]_x summed over the group's joints k (tied joints add up).
+            blocks = q.new_zeros(b, m * (1 + self.n_groups), 3, 3)
+            blocks.index_add_(1, self.pair_col * (1 + self.n_groups) + 1 + self.pair_group, -skew(q))
+            jp = blocks.view(b, m, 1 + self.n_groups, 3, 3).transpose(2, 3).reshape(b, 3 * m, self.n)
             jp[:, :, :3] = torch.eye(3, dtype=pos.dtype, device=pos.device).repeat(m, 1)
-            del flat
             jtj = jp.transpose(1, 2) @ jp + self.const_jtj
             rhs = jp.transpose(1, 2) @ r_pos.reshape(b, 3 * m, 1)
             rest = r[:, 3 * m :]
@@ -527,4 +539,3 @@ class _Solver:
             cost = torch.where(ok, c_cost, cost)
             lam = torch.where(ok, lam / 3, lam * 10)
         return local, transl, torch.linalg.vector_norm(r_pos, dim=-1)
-
