@@ -134,7 +134,7 @@ def test_units_and_bad_input():
     huge = replace(sk, offsets=sk.offsets * 1e4, translations=sk.translations * 1e4)
     with pytest.raises(
         ValueError,
-        match=r"x.bvh: cannot detect the length unit: the rest skeleton is 1.51\d*e\+06 units tall, which is no 0.4-3.0 m body",
+        match=r"x.bvh: cannot detect the length unit: the rest skeleton is 1.51\d*e\+06 units tall, which is no",
     ):
         skeletal_to_motion(huge, ConvertOptions(), "", "x.bvh: ")
     rot = sk.rotations.copy()
