@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import copy
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -112,7 +114,8 @@ def test_a_foreign_topology_without_a_template_says_what_template_takes(tmp_path
     with pytest.raises(
         ValueError,
         match=r"x.npz: vertices have 10475 per frame \(topology 'smplx'\), not the canonical 18056 or Anny's 13718: "
-        r"pass --template; --template takes the topology's rest mesh: an .obj with faces, or an SMPL-family",
+        r"pass --template; --template takes the topology.s rest mesh: an .obj with faces, an SMPL-family .npz.pkl model "
+        r"file, or an MHR asset folder",
     ):
         meshes.read_meshes(tmp_path / "x.npz", ConvertOptions())
 
@@ -135,3 +138,50 @@ def test_a_template_of_another_count_and_bad_fields_are_refused(smplh, tmp_path)
     with pytest.raises(ValueError, match="--template: expected an .obj, .npz or .pkl file, got 'a.ply'"):
         (tmp_path / "a.ply").write_text("ply")
         meshes.read_meshes(tmp_path / "y.npz", ConvertOptions(template=tmp_path / "a.ply"))
+
+
+def test_an_mhr_asset_folder_is_a_template_and_its_lod_is_picked_by_vertex_count(tmp_path, monkeypatch):
+    from mhr_format import write_mhr_assets
+    from unibody.identity.mhr import MHRIdentity
+
+    write_mhr_assets(tmp_path / "mhr", seed=0, num_vertices=40)
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def record(vertices, faces, name, **kw):
+        seen.append((np.asarray(vertices), np.asarray(faces)))
+        raise Stop
+
+    monkeypatch.setattr(meshes, "topology_transfer", record)
+    np.savez(tmp_path / "p.npz", vertices=np.ones((1, 40, 3), np.float32), topology=np.array("mhr"))
+    with pytest.raises(Stop):
+        meshes.read_meshes(tmp_path / "p.npz", ConvertOptions(template=tmp_path / "mhr"))
+    rest = MHRIdentity.from_files(tmp_path / "mhr", lod=1, dtype=torch.float64).template().numpy()
+    assert np.allclose(seen[0][0], rest) and seen[0][1].shape[1] == 3  # the mean rest mesh, in metres
+    np.savez(tmp_path / "q.npz", vertices=np.ones((1, 41, 3), np.float32), topology=np.array("mhr"))
+    with pytest.raises(
+        ValueError, match=r"--template: no MHR LOD in .*mhr has 41 vertices \(LOD: vertices \{1: 40\}\)"
+    ):
+        meshes.read_meshes(tmp_path / "q.npz", ConvertOptions(template=tmp_path / "mhr"))
+
+
+@pytest.mark.slow
+@pytest.mark.licensed
+@pytest.mark.skipif(not os.environ.get("UNIBODY_MHR_DIR"), reason="set UNIBODY_MHR_DIR to MHR converted assets")
+def test_sam_3d_body_outputs_invert_through_the_mhr_lod1_topology(tmp_path, monkeypatch):
+    """Real SAM 3D Body predictions (../shared/evaldata/mhr, Apache-2.0) on MHR lod1, registered for real."""
+    monkeypatch.undo()  # the real registration (~40 s once per template, then cached)
+    from smpl_format import evaldata_dir
+
+    files = sorted((evaldata_dir() / "mhr").glob("*.npz"))
+    if not files:
+        pytest.skip("no SAM 3D Body outputs under the evaluation data")
+    for path in files:
+        with np.load(path) as data:
+            v = data["pred_vertices"][None].astype(np.float32)  # camera frame, metres: a rotation of any world
+        np.savez(tmp_path / path.name, vertices=v, topology=np.array("mhr lod1"))
+        out = meshes.read_meshes(tmp_path / path.name, ConvertOptions(template=Path(os.environ["UNIBODY_MHR_DIR"])))
+        print(path.name, out.stats)
+        assert out.stats["inversion_mean_mm"] < 15.0, (path.name, out.stats)

@@ -7,8 +7,10 @@ warning) and ``faces (F, 3)`` (checked, not used). The topology is told by the v
 - 18,056: the canonical mesh, inverted directly;
 - 13,718: Anny's mesh, through the bundled wrap (:meth:`TopologyTransfer.from_anny`);
 - anything else (SMPL 6,890, SMPL-X 10,475, MHR lod1 18,439, ...): ``options.template`` names
-  its rest mesh, an ``.obj`` with faces or an SMPL-family model file (``.npz`` / ``.pkl``, its
-  ``v_template`` and ``f``), in the same units and axes as the sequence. It is registered onto
+  its rest mesh, an ``.obj`` with faces, an SMPL-family model file (``.npz`` / ``.pkl``, its
+  ``v_template`` and ``f``) or an MHR asset folder (``rig.npz`` + ``lod{N}.npz``, the LOD
+  whose vertex count matches the sequence; its mean rest mesh in metres), in the same units
+  and axes as the sequence. It is registered onto
   the canonical mesh automatically (:func:`unibody.registration.topology_transfer`, cached on
   disk; a new template costs ~40 s once). A template also overrides the two counts above.
 
@@ -41,7 +43,10 @@ __all__ = ["read_meshes", "template_transfer"]
 CANONICAL_VERTICES = 18056
 ANNY_VERTICES = 13718
 DEFAULT_FPS = 30.0
-_TEMPLATE_HELP = "--template takes the topology's rest mesh: an .obj with faces, or an SMPL-family .npz/.pkl model file"
+_TEMPLATE_HELP = (
+    "--template takes the topology's rest mesh: an .obj with faces, an SMPL-family .npz/.pkl model file, "
+    "or an MHR asset folder"
+)
 
 
 def _read(path: Path) -> tuple[np.ndarray, str, float | None]:
@@ -79,8 +84,10 @@ def _read(path: Path) -> tuple[np.ndarray, str, float | None]:
     return v, str(topo), fps
 
 
-def _template(path: Path) -> tuple[np.ndarray, object]:
-    """(vertices (V, 3), faces) of a template file: an OBJ, or an SMPL-family model file."""
+def _template(path: Path, n: int) -> tuple[np.ndarray, object]:
+    """(vertices (V, 3), faces) of a template: an OBJ, an SMPL-family model file, or an MHR folder."""
+    if path.is_dir():
+        return _mhr_template(path, n)
     suffix = path.suffix.lower()
     if suffix == ".obj":
         v, faces = read_obj(path)
@@ -95,25 +102,46 @@ def _template(path: Path) -> tuple[np.ndarray, object]:
     raise ValueError(f"--template: expected an .obj, .npz or .pkl file, got {path.name!r}; {_TEMPLATE_HELP}")
 
 
-@lru_cache(maxsize=4)
-def _cached_transfer(path: str, stamp: int) -> tuple[int, TopologyTransfer]:
-    v, faces = _template(Path(path))
+def _mhr_template(folder: Path, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The mean rest mesh (m) and faces of the MHR LOD with ``n`` vertices in an asset folder."""
+    from ..identity.mhr import MHRIdentity
+
+    lods = sorted(int(p.stem[3:]) for p in folder.glob("lod*.npz") if p.stem[3:].isdigit())
+    if not lods:
+        raise ValueError(f"--template: folder {folder} holds no MHR lod*.npz; {_TEMPLATE_HELP}")
+    counts = {}
+    for lod in lods:
+        with read_npz(folder / f"lod{lod}.npz") as data:
+            counts[lod] = data["base_shape"].shape[0] if "base_shape" in data.files else -1
+    match = [lod for lod, count in counts.items() if count == n]
+    if not match:
+        raise ValueError(f"--template: no MHR LOD in {folder} has {n} vertices (LOD: vertices {counts})")
+    identity = MHRIdentity.from_files(folder, lod=match[0], dtype=torch.float64)
     with torch.no_grad():
-        t = topology_transfer(v, faces, Path(path).stem)
-    return v.shape[0], t
+        return identity.template().numpy(), identity.faces().numpy()
 
 
-def template_transfer(template: str | Path) -> TopologyTransfer:
-    """The float64 transfer of a template's topology (registered once, cached on disk and in the process)."""
+@lru_cache(maxsize=4)
+def _cached_transfer(path: str, stamp: int, n: int) -> TopologyTransfer:
+    v, faces = _template(Path(path), n)
+    with torch.no_grad():
+        return topology_transfer(v, faces, Path(path).stem)
+
+
+def template_transfer(template: str | Path, num_vertices: int) -> TopologyTransfer:
+    """The float64 transfer of a template's topology (registered once, cached on disk and in the process).
+
+    ``num_vertices`` picks the LOD of an MHR folder (files carry one topology each).
+    """
     path = Path(template)
-    if not path.is_file():
-        raise ValueError(f"--template: no file at {path}; {_TEMPLATE_HELP}")
-    return _cached_transfer(str(path), path.stat().st_mtime_ns)[1]
+    if not path.exists():
+        raise ValueError(f"--template: nothing at {path}; {_TEMPLATE_HELP}")
+    return _cached_transfer(str(path), path.stat().st_mtime_ns, num_vertices)
 
 
 def _transfer_for(path: Path, n: int, topology: str, options: ConvertOptions) -> TopologyTransfer | None:
     if options.template is not None:
-        transfer = template_transfer(options.template)
+        transfer = template_transfer(options.template, n)
         if transfer.num_source_vertices != n:
             raise ValueError(
                 f"{path}: vertices have {n} per frame but the template {Path(options.template).name} has "
