@@ -114,8 +114,8 @@ def test_a_foreign_topology_without_a_template_says_what_template_takes(tmp_path
     with pytest.raises(
         ValueError,
         match=r"x.npz: vertices have 10475 per frame \(topology 'smplx'\), not the canonical 18056 or Anny's 13718: "
-        r"pass --template; --template takes the topology.s rest mesh: an .obj with faces, an SMPL-family .npz.pkl model "
-        r"file, or an MHR asset folder",
+        r"pass --template; --template takes the topology.s rest mesh: an .obj with faces, an SMPL-family "
+        r".npz/.pkl model file, or an MHR asset folder",
     ):
         meshes.read_meshes(tmp_path / "x.npz", ConvertOptions())
 
