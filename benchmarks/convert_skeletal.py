@@ -12,7 +12,7 @@ Targets (issue 34): mean <= 20 mm, P95 <= 40 mm, excess <= 5 deg.
 It then renders one motion, five frames side by side, the converted body with the source
 skeleton overlaid (red), to ``docs/convert_cmu.png``.
 
-    python benchmarks/convert_skeletal.py [--limit N] [--threads 2] [--data ../shared/motions/cmu]
+    python benchmarks/convert_skeletal.py [--limit N] [--threads 1] [--data ../shared/motions/cmu]
         [--picture bvh/002/02_01.bvh] [--no-picture]
 """
 
@@ -130,7 +130,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "motions" / "cmu")
     ap.add_argument("--limit", type=int, default=None, help="files per format (spread over subjects)")
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (the solver itself runs on one)")
     ap.add_argument("--picture", default="bvh/002/02_01.bvh", help="motion to render, relative to --data")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "convert_cmu.png")
     ap.add_argument("--no-picture", action="store_true")

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from unibody.body import BodyLayer
-from unibody.fitting.retarget import RetargetConfig, retarget
+from unibody.fitting.retarget import retarget
 from unibody.geometry.rotations import axis_angle_to_matrix, rotation_angle
 from unibody.synth.poses import sample_poses
 
@@ -91,11 +91,15 @@ def test_constant_offsets(layer):
     assert float(plain.joint_error.mean()) > 3 * float(res.joint_error.mean())
 
 
-def test_positions_only_first_frames(layer):
-    """Without orientations the torso is aligned by Kabsch and frames warm-start one from another."""
-    pos = _source(layer)[2]
-    res = retarget(layer, pos[:4], NAMES, config=RetargetConfig(iterations=10))
-    assert float(res.joint_error.mean()) < 5e-3
+def test_positions_only(layer):
+    """Without orientations the torso is aligned by Kabsch and frames warm-start one from another:
+    positions come back, and no joint jumps (twist about bone axes is not observable: not checked)."""
+    pose, _, pos, *_ = _source(layer)
+    res = retarget(layer, pos, NAMES)
+    assert float(res.joint_error.max()) < 3e-3
+    true_step = _angles(pose[:-1], pose[1:]).amax(1)
+    got_step = _angles(res.pose[:-1], res.pose[1:]).amax(1)
+    assert float((got_step - true_step).max()) < 0.087  # 5 degrees
 
 
 def test_bad_input(layer):

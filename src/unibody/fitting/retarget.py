@@ -38,7 +38,7 @@ import torch
 
 from .._checks import check_finite, check_shape
 from ..body import BodyLayer, PreparedIdentity
-from ..geometry.procrustes import kabsch
+from ..geometry.procrustes import kabsch, polar_svd
 from ..geometry.rotations import matrix_to_axis_angle, shortest_arc, skew
 from ._gauss_newton import rotate_joints
 from .shape_fit import param_limits
@@ -424,6 +424,8 @@ def _solve_all(
         iters = 4 * cfg.iterations
         for f in range(t):
             local, transl, err = solver.solve(local, transl, positions[f : f + 1], None, iters)
+            # Frame after frame the float32 updates would leave SO(3) and stall the steps.
+            local = polar_svd(local)
             iters = cfg.iterations
             poses.append(local)
             transls.append(transl)
