@@ -110,6 +110,8 @@ def test_bad_input(layer):
         retarget(layer, pos, ["Hips", "Head", "Head"])
     with pytest.raises(ValueError, match="at least 3 mapped joints, got 2"):
         retarget(layer, pos[:, :2], ["Hips", "Head"])
+    with pytest.raises(ValueError, match=r"positions: expected at least one frame, got shape \(0, 3, 3\)"):
+        retarget(layer, pos[:0], ["Hips", "Chest", "Head"])
     bad = pos.clone()
     bad[2, 1, 0] = float("nan")
     with pytest.raises(ValueError, match=r"positions: .*NaN/inf in 1 frame\(s\): 2$"):

@@ -268,7 +268,10 @@ def retarget(
 
     Raises:
         ValueError: unknown or repeated joint names, fewer than 3 mapped joints, wrong shapes,
-            NaN/inf (the message names the first bad frame).
+            no frames, NaN/inf (the message lists the bad frames).
+
+    Inputs are cast to the layer's dtype (the solve runs in it; float64 is the safer choice
+    for long position-only motions).
     """
     cfg = config or RetargetConfig()
     ref = layer.tpose_orient
@@ -280,6 +283,8 @@ def retarget(
     _check_frames(positions, "positions")
     positions = positions.to(ref)
     t = positions.shape[0]
+    if t == 0:
+        raise ValueError(f"positions: expected at least one frame, got shape {tuple(positions.shape)}")
     has_rot = orientations is not None
     if has_rot:
         check_shape(orientations, f"T {m} 3 3", name="orientations", sizes={"T": t})
