@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from ..body import BodyLayer
-from ..fitting.retarget import RetargetConfig, retarget
+from ..fitting.retarget import RetargetConfig, bone_pairs, fit_bone_lengths, retarget
 from ..geometry.rotations import matrix_to_axis_angle
 from ..io.asfamc import read_asf_amc
 from ..io.bvh import read_bvh as read_bvh_file
@@ -221,8 +221,13 @@ def _check_frames(sk: SkeletalMotion, where: str) -> None:
         raise ValueError(f"{where}expected at least one frame, got 0")
 
 
-def _canonical_names(names: tuple[str, ...]) -> bool:
-    return tuple(n for n in names if not n.endswith("_End") and "_End" not in n) == JOINT_NAMES[1:]
+def _canonical_skeleton(sk: SkeletalMotion, parents: tuple[int, ...]) -> bool:
+    """Whether the joints (end sites aside) are the canonical ones, in order, with the canonical ``parents``."""
+    keep = [i for i, n in enumerate(sk.names) if "_End" not in n]
+    if tuple(sk.names[i] for i in keep) != JOINT_NAMES[1:]:
+        return False
+    parent_names = [sk.names[p] if p >= 0 else "Root" for p in sk.parents[keep]]
+    return parent_names == [JOINT_NAMES[max(p, 0)] for p in parents[1:]]
 
 
 def skeletal_to_motion(
@@ -239,13 +244,22 @@ def skeletal_to_motion(
     scale = metres_per_unit(sk, options.units, where)
     dtype = torch.float64 if options.dtype == "float64" else torch.float32
     src_change = _max_change_deg(sk.rotations)
-    if _canonical_names(sk.names) and options.mapping is None:
+    cfg = config or RetargetConfig(batch=max(1, int(options.batch)))
+    layer = _layer(cfg.num_components, dtype)
+    if _canonical_skeleton(sk, layer.rig_tree.parents) and options.mapping is None:
         cols = [sk.names.index(n) for n in JOINT_NAMES[1:]]
         rot = torch.as_tensor(sk.rotations[:, cols], dtype=torch.float64)
         pose = matrix_to_axis_angle(rot).numpy().astype(np.float32)
         transl = (sk.translations[:, 0] * scale).astype(np.float32)
-        motion = Motion(pose, transl, float(sk.fps), None, None, source)
+        # The identity from the rest offsets (each joint's distance to its parent in the T-pose).
+        mapped = list(range(1, len(JOINT_NAMES)))
+        pairs = bone_pairs([int(p) for p in layer.rig_tree.parents], mapped)
+        lengths = torch.as_tensor([np.linalg.norm(sk.offsets[cols[b]]) * scale for _, b in pairs], dtype=dtype)
+        params, bone_err = fit_bone_lengths(layer, mapped, lengths, cfg)
+        identity = params.double().numpy().astype(np.float32)
+        motion = Motion(pose, transl, float(sk.fps), identity, "pca", source)
         stats = {"frames": sk.num_frames, "fps": float(sk.fps), "mapped_joints": 77, "metres_per_unit": scale}
+        stats["identity_bone_rms_mm"] = float(bone_err.double().square().mean().sqrt()) * 1e3
         stats |= {"retarget_mean_mm": 0.0, "retarget_p95_mm": 0.0, "retarget_max_mm": 0.0}
         stats |= {"max_joint_change_deg": src_change, "source_max_joint_change_deg": src_change}
         return Converted(motion, stats | {"seconds": time.perf_counter() - start})
@@ -256,11 +270,9 @@ def skeletal_to_motion(
             f"{where}only {len(mapping)} joint(s) map to the canonical rig (need {MIN_MAPPED}); unmapped: "
             f"{', '.join(unmapped)}; give a mapping JSON {{source name: canonical name}}"
         )
-    cfg = config or RetargetConfig(batch=max(1, int(options.batch)))
     cols = sorted(mapping)
     pos, rot = sk.world()
     rest_pos, rest_rot = _rest_world(sk)
-    layer = _layer(cfg.num_components, dtype)
     as_t = lambda x: torch.as_tensor(np.ascontiguousarray(x), dtype=dtype)  # noqa: E731
     res = retarget(
         layer,

@@ -43,7 +43,7 @@ from ..geometry.rotations import matrix_to_axis_angle, shortest_arc, skew
 from ._gauss_newton import rotate_joints
 from .shape_fit import param_limits
 
-__all__ = ["RetargetConfig", "RetargetResult", "retarget", "fit_bone_lengths"]
+__all__ = ["RetargetConfig", "RetargetResult", "bone_pairs", "fit_bone_lengths", "retarget"]
 
 # Canonical joints that follow their parent when unmapped (spine and neck chains).
 _FOLLOW_PARENT = frozenset({"Spine1", "Spine2", "Chest", "Neck1", "Neck2"})
@@ -110,8 +110,13 @@ def _mapped_index(layer: BodyLayer, joints: Sequence[str]) -> list[int]:
     return [index[n] for n in joints]
 
 
-def _bones(parents: list[int], mapped: list[int]) -> list[tuple[int, int]]:
-    """(a, b) column pairs: mapped joint b and its nearest mapped canonical ancestor a."""
+def bone_pairs(parents: list[int], mapped: list[int]) -> list[tuple[int, int]]:
+    """(a, b) column pairs: mapped joint b and its nearest mapped canonical ancestor a.
+
+    Args:
+        parents: the canonical parent of every joint (``layer.rig_tree.parents``).
+        mapped: the canonical joint of each column.
+    """
     col = {c: i for i, c in enumerate(mapped)}
     out = []
     for i, c in enumerate(mapped):
@@ -149,7 +154,7 @@ def fit_bone_lengths(
     Returns:
         ``(params (K,), residual (N,) m)``.
     """
-    bones = _bones([int(p) for p in layer.rig_tree.parents], mapped)
+    bones = bone_pairs([int(p) for p in layer.rig_tree.parents], mapped)
     ref = layer.tpose_orient
     k_all = layer.identity.num_params
     k = min(config.num_components, k_all)
@@ -309,7 +314,7 @@ def _rounds(layer, positions, mapped, orientations, rest_positions, rest_orienta
     ref = layer.tpose_orient
     m = len(mapped)
     has_rot = orientations is not None
-    bones = _bones([int(p) for p in layer.rig_tree.parents], mapped)
+    bones = bone_pairs([int(p) for p in layer.rig_tree.parents], mapped)
     offsets = positions.new_zeros(m, 3)
     targets = reached = positions
     rounds = 1 + (cfg.offset_rounds if offset_frames is not None else 0)
@@ -383,7 +388,7 @@ def _calibrate(
     canon = tpos[mapped]
     q = _torso_rotation(mapped, names, canon, rpos)
     children: dict[int, list[int]] = {}
-    for a, b in _bones([int(p) for p in layer.rig_tree.parents], mapped):
+    for a, b in bone_pairs([int(p) for p in layer.rig_tree.parents], mapped):
         children.setdefault(a, []).append(b)
     s = q.expand(len(mapped), 3, 3).clone()
     for i, kids in children.items():
