@@ -127,7 +127,7 @@ def test_units_and_bad_input():
     sk, _, _ = _canonical_bvh(t=6)
     with pytest.raises(
         ValueError,
-        match=r"units 'mm' make the skeleton 0.15\d+ m tall \(expected 0.4-3.0 m\); the file is likely in cm",
+        match=r"units 'mm' make the skeleton 0.2\d+ m tall \(expected 0.4-3.0 m\); the file is likely in cm",
     ):
         skeletal_to_motion(sk, ConvertOptions(units="mm"), "", "x.bvh: ")
     with pytest.raises(ValueError, match="units: expected one of m, cm, mm, in, ft, got 'km'"):
@@ -135,7 +135,7 @@ def test_units_and_bad_input():
     huge = replace(sk, offsets=sk.offsets * 1e4, translations=sk.translations * 1e4)
     with pytest.raises(
         ValueError,
-        match=r"x.bvh: cannot detect the length unit: the rest skeleton is 1.51\d*e\+06 units tall, which is no",
+        match=r"x.bvh: cannot detect the length unit: the rest skeleton is 2.2\d*e\+06 units tall, which is no",
     ):
         skeletal_to_motion(huge, ConvertOptions(), "", "x.bvh: ")
     rot = sk.rotations.copy()
