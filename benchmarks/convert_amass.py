@@ -1,6 +1,6 @@
 """AMASS-format conversion throughput: generated SMPL-X takes -> unibody motion files (issue 34).
 
-What it measures, on 2 threads (``torch.set_num_threads(2)``), float32, CPU:
+What it measures, on 2 threads (``torch.set_num_threads(2)``; ``--threads``), float32, CPU:
   - a generated SMPL-X-format model file (10,475 v, 55 joints, 10 shape + 10 expression
     columns) skinned exactly like the canonical body (``tests/smpl_format.canonical_model``:
     a seeded subset of the canonical bind mesh, merged canonical weights, exact joint
@@ -76,8 +76,11 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu", choices=["cpu"], help="the converter runs on the CPU")
+    parser.add_argument(
+        "--threads", type=int, default=2, help="torch threads (1 on a shared machine: 2 threads thrash under load)"
+    )
     args = parser.parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
     rng = np.random.default_rng(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
@@ -104,19 +107,21 @@ def main() -> None:
     frames = args.takes * args.frames
     print()
     print(
-        f"{args.takes} takes x {args.frames} frames = {frames} frames, batch {args.batch}, float32, 2 threads; "
-        f"{platform.processor() or platform.machine()}, {_cpu_name()}"
+        f"{args.takes} takes x {args.frames} frames = {frames} frames, batch {args.batch}, float32, "
+        f"{args.threads} thread(s); "
+        f"{platform.processor() or platform.machine()}, {_cpu_name()}, load average {_load()}"
     )
     print()
     print(
         "| preset | setup s | forward s | transfer s | inversion s | I/O s | total s | frames/s end to end "
-        "| error mean mm | error max mm |"
+        "| inverter alone, frames/s | error mean mm | error max mm |"
     )
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(
             f"| {r['preset']} | {r['setup']:.1f} | {r['forward']:.1f} | {r['transfer']:.1f} | {r['inversion']:.1f} "
-            f"| {r['io']:.1f} | {r['total']:.1f} | **{frames / r['total']:,.0f}** | {r['mean']:.2f} | {r['max']:.1f} |"
+            f"| {r['io']:.1f} | {r['total']:.1f} | **{frames / r['total']:,.0f}** | {r['alone']:,.0f} "
+            f"| {r['mean']:.2f} | {r['max']:.1f} |"
         )
 
 
@@ -130,6 +135,7 @@ def run(preset: str, takes: list[Path], root: Path, batch: int) -> dict:
     err_sum, frames, worst = 0.0, 0, 0.0
     out = root / preset
     out.mkdir()
+    alone = inverter_alone(takes[0], options)
     t0 = time.perf_counter()
     for path in takes:
         converted = amass.read_amass(path, options)
@@ -145,7 +151,48 @@ def run(preset: str, takes: list[Path], root: Path, batch: int) -> dict:
         worst = max(worst, s["inversion_max_mm"])
     total = time.perf_counter() - t0
     print(f"{preset}: {frames} frames in {total:.1f} s ({frames / total:.0f} frames/s)", flush=True)
-    return {"preset": preset, "setup": setup, "total": total, "mean": err_sum / frames, "max": worst, **sums}
+    return {
+        "preset": preset,
+        "setup": setup,
+        "total": total,
+        "mean": err_sum / frames,
+        "max": worst,
+        "alone": alone,
+        **sums,
+    }
+
+
+def inverter_alone(path: Path, options: ConvertOptions) -> float:
+    """Frames/s of the inverter by itself on one take's canonical meshes (same batches): the
+    reference the end-to-end rate is compared with, measured in the same process (the machine
+    is shared; only ratios travel)."""
+    layer, inv, dtype = amass.inverter(options)
+    take = amass.read_take(path)
+    model_path = root_model(path)
+    model = amass._model(str(model_path), model_path.stat().st_mtime_ns, dtype)
+    transfer = amass._transfer(str(model_path), model_path.stat().st_mtime_ns, dtype)
+    betas = torch.zeros(1, model.num_betas)
+    betas[0] = torch.as_tensor(take.betas[: model.num_betas], dtype=dtype)
+    with torch.no_grad():
+        prepared = layer.prepare_rest(transfer(model.shaped(betas)))
+        pose = torch.as_tensor(take.poses, dtype=dtype)
+        trans = torch.as_tensor(take.trans, dtype=dtype)
+        target = transfer(amass.to_y_up(model(pose, betas, transl=trans).vertices))
+        t0 = time.perf_counter()
+        for start in range(0, len(target), options.batch):
+            inv.invert(target[start : start + options.batch], prepared)
+    return len(target) / (time.perf_counter() - t0)
+
+
+def root_model(path: Path) -> Path:
+    return path.parent / "SMPLX_FEMALE.npz"
+
+
+def _load() -> str:
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "unknown"
 
 
 def _cpu_name() -> str:

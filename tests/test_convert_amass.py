@@ -197,3 +197,12 @@ def test_a_layout_against_its_surface_model_type_and_bad_fields_are_refused(mode
     write_take(tmp_path / "h.npz", "smplh", t=3)
     with pytest.raises(ValueError, match="h.npz: the smplh take needs a smplh model file; .*SMPLX_FEMALE.npz is smplx"):
         amass.read_amass(tmp_path / "h.npz", ConvertOptions(models=models[1]["smplx"]))
+
+
+def test_read_take_accepts_byte_strings_and_refuses_empty_takes(tmp_path):
+    write_take(tmp_path / "b.npz", "smplh", t=3, gender=np.array(b"female"), surface_model_type=np.array(b"smplh"))
+    take = amass.read_take(tmp_path / "b.npz")
+    assert take.gender == "female" and take.family == "smplh" and take.poses.shape == (3, 52, 3)
+    write_take(tmp_path / "e.npz", "smplx", t=0)
+    with pytest.raises(ValueError, match=r"e.npz: poses: expected at least one frame, got shape \(0, 55, 3\)"):
+        amass.read_take(tmp_path / "e.npz")

@@ -115,6 +115,8 @@ def read_take(path: str | Path) -> AmassTake:
     if missing:
         raise ValueError(f"{path}: AMASS {family} layout without {', '.join(missing)} (keys: {_keys(keys)})")
     t = poses.shape[0]
+    if t == 0:
+        raise ValueError(f"{path}: poses: expected at least one frame, got shape {poses.shape}")
     trans = _real(fields["trans"], (t, 3), f"{path}: trans", f"({t}, 3)")
     betas = _real(fields["betas"].reshape(-1), None, f"{path}: betas", "(K,)")
     _finite_frames(poses.reshape(t, -1), trans, path)
@@ -149,10 +151,8 @@ def _poses(fields: dict, keys: set[str], path: Path, notes: list[str]) -> tuple[
     """The family and the full pose (T, J, 3) of either layout."""
     stated = None
     if "surface_model_type" in fields:
-        stated = str(fields["surface_model_type"].reshape(-1)[0]).lower() if fields["surface_model_type"].size else ""
-        stated = {"smplx": "smplx", "smplh": "smplh", "smpl+h": "smplh", "smplx_locked_head": "smplx"}.get(
-            stated, stated
-        )
+        stated = _string(fields["surface_model_type"], path, "surface_model_type")
+        stated = {"smpl+h": "smplh", "smplx_locked_head": "smplx"}.get(stated, stated)
     if "poses" in fields and fields["poses"].ndim == 2 and fields["poses"].shape[1] in (156, 165):
         poses = fields["poses"]
         family = "smplh" if poses.shape[1] == 156 else "smplx"
@@ -182,7 +182,7 @@ def _poses(fields: dict, keys: set[str], path: Path, notes: list[str]) -> tuple[
         )
     if poses.dtype.kind not in "fiu":
         raise ValueError(f"{path}: poses: expected real numbers, got dtype {poses.dtype}")
-    return family, poses.astype(np.float64).reshape(poses.shape[0], -1, 3)
+    return family, poses.astype(np.float64).reshape(poses.shape[0], _JOINTS[family], 3)
 
 
 def _finite_frames(poses: np.ndarray, trans: np.ndarray, path: Path) -> None:
@@ -192,11 +192,16 @@ def _finite_frames(poses: np.ndarray, trans: np.ndarray, path: Path) -> None:
         raise ValueError(f"{path}: NaN/inf in poses or trans at frames {shown} ({bad.size} of {len(poses)} frames)")
 
 
-def _gender(x: np.ndarray, path: Path) -> str:
+def _string(x: np.ndarray, path: Path, key: str) -> str:
+    """A 0-d or one-element string array (str or bytes), stripped and lower-cased."""
     if x.dtype.kind not in "US" or x.size != 1:
-        raise ValueError(f"{path}: gender: expected a string, got {x.dtype} {x.shape}")
+        raise ValueError(f"{path}: {key}: expected a string, got {x.dtype} {x.shape}")
     value = x.reshape(())[()]
-    g = (value.decode("latin1") if isinstance(value, bytes) else str(value)).strip().lower()
+    return (value.decode("latin1") if isinstance(value, bytes) else str(value)).strip().lower()
+
+
+def _gender(x: np.ndarray, path: Path) -> str:
+    g = _string(x, path, "gender")
     if g not in ("neutral", "male", "female"):
         raise ValueError(f"{path}: gender: expected neutral, male or female, got {g!r}")
     return g
