@@ -62,9 +62,17 @@ def _side(rules: dict[str, str]) -> dict[str, str]:
 
 _LIMBS = ("Shoulder", "Arm", "ForeArm", "Hand", "Leg", "Shin", "Foot", "ToeBase", "ToeEnd")
 NAME_RULES: dict[str, dict[str, str]] = {
-    # CMU's ASF bones; joints sit at the bone's start (lfemur: the hip joint).
+    # CMU's ASF bones; joints sit at the bone's start (lfemur: the hip joint). Some BVH
+    # conversions keep these names with a root called "hip".
     "cmu_asf": _side(
-        {"root": "Hips", "upperback": "Spine2", "thorax": "Chest", "lowerneck": "Neck1", "upperneck": "Neck2"}
+        {
+            "root": "Hips",
+            "hip": "Hips",
+            "upperback": "Spine2",
+            "thorax": "Chest",
+            "lowerneck": "Neck1",
+            "upperneck": "Neck2",
+        }
         | {"head": "Head", "lclavicle": "LeftShoulder", "lhumerus": "LeftArm", "lradius": "LeftForeArm"}
         | {"lwrist": "LeftHand", "lfemur": "LeftLeg", "ltibia": "LeftShin", "lfoot": "LeftFoot", "ltoes": "LeftToeBase"}
     ),
@@ -201,6 +209,26 @@ def _layer(num_components: int, dtype: torch.dtype) -> BodyLayer:
     return BodyLayer.from_pca(num_components=num_components, dtype=dtype)
 
 
+_COINCIDENT_M = 0.01
+
+
+def _drop_coincident(sk: SkeletalMotion, mapping: dict[int, str], rest_m: np.ndarray, where: str) -> list[str]:
+    """Unmap joints that sit on their nearest mapped source ancestor at rest (within 1 cm).
+
+    Some conversions put a joint on its parent (CMU BVHs with ASF names place ``lowerneck`` and
+    the clavicles at the thorax's start): two canonical joints cannot both follow one point.
+    Changes ``mapping`` in place; returns one warning per dropped joint.
+    """
+    out = []
+    for i in sorted(mapping):
+        a = int(sk.parents[i])
+        while a >= 0 and a not in mapping:
+            a = int(sk.parents[a])
+        if a >= 0 and np.linalg.norm(rest_m[i] - rest_m[a]) < _COINCIDENT_M:
+            out.append(f"{where}joint {sk.names[i]!r} sits on {sk.names[a]!r} at rest; {mapping.pop(i)} left unmapped")
+    return out
+
+
 def _max_change_deg(rot: np.ndarray) -> float:
     """Largest angle (deg) between consecutive frames of local rotations (T, J, 3, 3)."""
     if rot.shape[0] < 2:
@@ -270,9 +298,10 @@ def skeletal_to_motion(
             f"{where}only {len(mapping)} joint(s) map to the canonical rig (need {MIN_MAPPED}); unmapped: "
             f"{', '.join(unmapped)}; give a mapping JSON {{source name: canonical name}}"
         )
+    rest_pos, rest_rot = _rest_world(sk)
+    warnings = _drop_coincident(sk, mapping, rest_pos * scale, where)
     cols = sorted(mapping)
     pos, rot = sk.world()
-    rest_pos, rest_rot = _rest_world(sk)
     as_t = lambda x: torch.as_tensor(np.ascontiguousarray(x), dtype=dtype)  # noqa: E731
     res = retarget(
         layer,
@@ -304,7 +333,7 @@ def skeletal_to_motion(
     raw = res.raw_error.double().numpy() * 1e3
     stats |= {"retarget_raw_mean_mm": float(raw.mean()), "retarget_raw_p95_mm": float(np.percentile(raw, 95))}
     stats |= {"source_max_joint_change_deg": src_change, "seconds": time.perf_counter() - start}
-    return Converted(motion, stats)
+    return Converted(motion, stats, tuple(warnings))
 
 
 def read_bvh(path: Path, options: ConvertOptions) -> Converted:
