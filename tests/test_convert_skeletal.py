@@ -13,7 +13,15 @@ import pytest
 import torch
 
 from unibody.convert import ConvertOptions
-from unibody.convert.skeletal import _layer, find_asf, map_joints, read_amc, read_bvh, skeletal_to_motion
+from unibody.convert.skeletal import (
+    _drop_coincident,
+    _layer,
+    find_asf,
+    map_joints,
+    read_amc,
+    read_bvh,
+    skeletal_to_motion,
+)
 from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.io.skeletal import SkeletalMotion
 from unibody.rig import JOINT_NAMES
@@ -62,6 +70,22 @@ def test_name_rules():
     assert len(mix) == 25 and mix["mixamorig:LeftLeg"] == "LeftShin" and mix["mixamorig:RightUpLeg"] == "RightLeg"
     canon = map_joints(JOINT_NAMES[1:])
     assert len(canon) == 77 and all(JOINT_NAMES[i + 1] == c for i, c in canon.items())
+
+
+def test_asf_names_in_a_bvh():
+    """Some CMU BVHs keep the ASF bone names with a root called "hip", and put the clavicles and
+    lowerneck on the thorax's start: the root maps, the joints sitting on a mapped one do not."""
+    names = ("hip",) + tuple(CMU_ASF[1:])
+    mapping = map_joints(names)
+    assert mapping[0] == "Hips" and len(mapping) == 22
+    parents = np.array([-1, 0, 1, 2, 3, 4, 0, 6, 7, 8, 9, 0, 11, 12, 13, 14, 15, 13, 17, 18, 19, 20, 21, 21])
+    parents = np.concatenate([parents, [13, 24, 25, 26, 27, 28, 28]])
+    rest = np.cumsum(np.full((31, 3), 0.05), 0)
+    rest[[CMU_ASF.index(n) for n in ("lowerneck", "lclavicle", "rclavicle")]] = rest[CMU_ASF.index("thorax")]
+    sk = SkeletalMotion(names, parents, np.zeros((31, 3)), np.zeros((1, 31, 3, 3)), np.zeros((1, 31, 3)), 30.0)
+    warnings = _drop_coincident(sk, mapping, rest, "x.bvh: ")
+    assert len(mapping) == 19 and {"Neck1", "LeftShoulder", "RightShoulder"}.isdisjoint(mapping.values())
+    assert warnings[0] == "x.bvh: joint 'lowerneck' sits on 'thorax' at rest; Neck1 left unmapped"
 
 
 def test_mapping_override(tmp_path):
