@@ -29,7 +29,7 @@ import torch
 
 from ..body import BodyLayer
 from ..fitting.retarget import RetargetConfig, bone_pairs, fit_bone_lengths, retarget
-from ..geometry.rotations import matrix_to_axis_angle
+from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..io.asfamc import read_asf_amc
 from ..io.bvh import read_bvh as read_bvh_file
 from ..io.skeletal import SkeletalMotion
@@ -258,6 +258,30 @@ def _canonical_skeleton(sk: SkeletalMotion, parents: tuple[int, ...]) -> bool:
     return parent_names == [JOINT_NAMES[max(p, 0)] for p in parents[1:]]
 
 
+def _by_name(
+    sk: SkeletalMotion, layer: BodyLayer, scale: float, cfg: RetargetConfig, source: str, start: float
+) -> Converted:
+    """A canonical skeleton: rotations by name (exact); the identity fitted to the rest offsets."""
+    src_change = _max_change_deg(sk.rotations)
+    dtype = layer.tpose_orient.dtype
+    cols = [sk.names.index(n) for n in JOINT_NAMES[1:]]
+    rot = torch.as_tensor(sk.rotations[:, cols], dtype=torch.float64)
+    pose = matrix_to_axis_angle(rot).numpy().astype(np.float32)
+    transl = (sk.translations[:, 0] * scale).astype(np.float32)
+    # The identity from the rest offsets (each joint's distance to its parent in the T-pose).
+    mapped = list(range(1, len(JOINT_NAMES)))
+    pairs = bone_pairs([int(p) for p in layer.rig_tree.parents], mapped)
+    lengths = torch.as_tensor([np.linalg.norm(sk.offsets[cols[b]]) * scale for _, b in pairs], dtype=dtype)
+    params, bone_err = fit_bone_lengths(layer, mapped, lengths, cfg)
+    identity = params.double().numpy().astype(np.float32)
+    motion = Motion(pose, transl, float(sk.fps), identity, "pca", source)
+    stats = {"frames": sk.num_frames, "fps": float(sk.fps), "mapped_joints": 77, "metres_per_unit": scale}
+    stats["identity_bone_rms_mm"] = float(bone_err.double().square().mean().sqrt()) * 1e3
+    stats |= {"retarget_mean_mm": 0.0, "retarget_p95_mm": 0.0, "retarget_max_mm": 0.0}
+    stats |= {"max_joint_change_deg": src_change, "source_max_joint_change_deg": src_change}
+    return Converted(motion, stats | {"seconds": time.perf_counter() - start})
+
+
 def skeletal_to_motion(
     sk: SkeletalMotion, options: ConvertOptions, source: str, where: str = "", config: RetargetConfig | None = None
 ) -> Converted:
@@ -275,31 +299,16 @@ def skeletal_to_motion(
     cfg = config or RetargetConfig(batch=max(1, int(options.batch)))
     layer = _layer(cfg.num_components, dtype)
     if _canonical_skeleton(sk, layer.rig_tree.parents) and options.mapping is None:
-        cols = [sk.names.index(n) for n in JOINT_NAMES[1:]]
-        rot = torch.as_tensor(sk.rotations[:, cols], dtype=torch.float64)
-        pose = matrix_to_axis_angle(rot).numpy().astype(np.float32)
-        transl = (sk.translations[:, 0] * scale).astype(np.float32)
-        # The identity from the rest offsets (each joint's distance to its parent in the T-pose).
-        mapped = list(range(1, len(JOINT_NAMES)))
-        pairs = bone_pairs([int(p) for p in layer.rig_tree.parents], mapped)
-        lengths = torch.as_tensor([np.linalg.norm(sk.offsets[cols[b]]) * scale for _, b in pairs], dtype=dtype)
-        params, bone_err = fit_bone_lengths(layer, mapped, lengths, cfg)
-        identity = params.double().numpy().astype(np.float32)
-        motion = Motion(pose, transl, float(sk.fps), identity, "pca", source)
-        stats = {"frames": sk.num_frames, "fps": float(sk.fps), "mapped_joints": 77, "metres_per_unit": scale}
-        stats["identity_bone_rms_mm"] = float(bone_err.double().square().mean().sqrt()) * 1e3
-        stats |= {"retarget_mean_mm": 0.0, "retarget_p95_mm": 0.0, "retarget_max_mm": 0.0}
-        stats |= {"max_joint_change_deg": src_change, "source_max_joint_change_deg": src_change}
-        return Converted(motion, stats | {"seconds": time.perf_counter() - start})
+        return _by_name(sk, layer, scale, cfg, source, start)
     mapping = map_joints(sk.names, options.mapping, where)
+    rest_pos, rest_rot = _rest_world(sk)
+    warnings = _drop_coincident(sk, mapping, rest_pos * scale, where)
     if len(mapping) < MIN_MAPPED:
         unmapped = [n for i, n in enumerate(sk.names) if i not in mapping]
         raise ValueError(
             f"{where}only {len(mapping)} joint(s) map to the canonical rig (need {MIN_MAPPED}); unmapped: "
             f"{', '.join(unmapped)}; give a mapping JSON {{source name: canonical name}}"
         )
-    rest_pos, rest_rot = _rest_world(sk)
-    warnings = _drop_coincident(sk, mapping, rest_pos * scale, where)
     cols = sorted(mapping)
     pos, rot = sk.world()
     as_t = lambda x: torch.as_tensor(np.ascontiguousarray(x), dtype=dtype)  # noqa: E731
@@ -315,10 +324,7 @@ def skeletal_to_motion(
     )
     pose = res.pose.double().numpy()
     err = res.joint_error.double().numpy() * 1e3
-    out_rot = torch.as_tensor(pose)
-    from ..geometry.rotations import axis_angle_to_matrix
-
-    change = _max_change_deg(axis_angle_to_matrix(out_rot).numpy())
+    change = _max_change_deg(axis_angle_to_matrix(torch.as_tensor(pose)).numpy())
     motion = Motion(
         pose.astype(np.float32),
         res.transl.double().numpy().astype(np.float32),
