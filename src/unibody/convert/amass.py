@@ -68,6 +68,11 @@ _LAYOUTS = (
     "[/pose_jaw/pose_eye], with trans (T, 3), betas, gender and mocap_framerate/mocap_frame_rate"
 )
 _PCA_COMPONENTS = 128
+# Posing and transfer run in chunks whose intermediates stay in cache (one SMPL-X frame's
+# blended transforms are 0.5 MB): on 1 thread, 2026-11-26, forward 0.86 vs 1.33 ms/frame
+# (64 vs 256 frames), transfer 1.05 vs 2.0 ms/frame (16 vs 256); the inverter takes the batch.
+_FORWARD_CHUNK = 64
+_TRANSFER_CHUNK = 16
 
 
 @dataclass(frozen=True, slots=True)
@@ -349,17 +354,20 @@ class _AmassMeshes:
 
     def __call__(self, start: int, stop: int) -> torch.Tensor:
         dtype = self.betas.dtype
-        t0 = time.perf_counter()
+        out, forward, transfer = [], 0.0, 0.0
         with torch.no_grad():
-            pose = torch.as_tensor(self.take.poses[start:stop], dtype=dtype)
-            trans = torch.as_tensor(self.take.trans[start:stop], dtype=dtype)
-            verts = to_y_up(self.model(pose, self.betas, transl=trans).vertices)
-            t1 = time.perf_counter()
-            out = self.transfer(verts)
-        t2 = time.perf_counter()
-        self.times["time_forward_s"] = self.times.get("time_forward_s", 0.0) + t1 - t0
-        self.times["time_transfer_s"] = self.times.get("time_transfer_s", 0.0) + t2 - t1
-        return out
+            for s in range(start, stop, _FORWARD_CHUNK):
+                t0 = time.perf_counter()
+                e = min(s + _FORWARD_CHUNK, stop)
+                pose = torch.as_tensor(self.take.poses[s:e], dtype=dtype)
+                trans = torch.as_tensor(self.take.trans[s:e], dtype=dtype)
+                verts = to_y_up(self.model(pose, self.betas, transl=trans).vertices)
+                t1 = time.perf_counter()
+                out.extend(self.transfer(verts[k : k + _TRANSFER_CHUNK]) for k in range(0, e - s, _TRANSFER_CHUNK))
+                forward, transfer = forward + t1 - t0, transfer + time.perf_counter() - t1
+        self.times["time_forward_s"] = self.times.get("time_forward_s", 0.0) + forward
+        self.times["time_transfer_s"] = self.times.get("time_transfer_s", 0.0) + transfer
+        return torch.cat(out)
 
 
 def read_amass(path: Path, options: ConvertOptions) -> Converted:

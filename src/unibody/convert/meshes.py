@@ -36,7 +36,7 @@ from ..motion import Motion, check_fps
 from ..registration import topology_transfer
 from ..topology import TopologyTransfer
 from ._types import Converted, ConvertOptions
-from .amass import inverter, pca_identity, solve_meshes
+from .amass import _TRANSFER_CHUNK, inverter, pca_identity, solve_meshes
 
 __all__ = ["read_meshes", "template_transfer"]
 
@@ -169,8 +169,8 @@ class _Sequence:
         t0 = time.perf_counter()
         v = torch.as_tensor(self.vertices[start:stop], dtype=self.dtype)
         if self.transfer is not None:
-            with torch.no_grad():
-                v = self.transfer(v)
+            with torch.no_grad():  # in chunks that stay in cache (see unibody.convert.amass)
+                v = torch.cat([self.transfer(v[k : k + _TRANSFER_CHUNK]) for k in range(0, len(v), _TRANSFER_CHUNK)])
         self.times["time_transfer_s"] = self.times.get("time_transfer_s", 0.0) + time.perf_counter() - t0
         return v
 
