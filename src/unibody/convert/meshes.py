@@ -36,7 +36,7 @@ from ..motion import Motion, check_fps
 from ..registration import topology_transfer
 from ..topology import TopologyTransfer
 from ._types import Converted, ConvertOptions
-from .amass import _TRANSFER_CHUNK, inverter, pca_identity, solve_meshes
+from .amass import _TRANSFER_CHUNK, _member, _string, inverter, pca_identity, solve_meshes
 
 __all__ = ["read_meshes", "template_transfer"]
 
@@ -58,18 +58,15 @@ def _read(path: Path) -> tuple[np.ndarray, str, float | None]:
                 f"{path}: missing field(s) {', '.join(sorted(missing))}; expected vertices (T, N, 3) and topology "
                 f"(fields: {', '.join(sorted(data.files)) or 'none'})"
             )
-        v = data["vertices"]
-        topo = data["topology"]
-        fps = data["fps"] if "fps" in data.files else None
-        faces = data["faces"] if "faces" in data.files else None
+        v, topo = _member(data, "vertices", path), _member(data, "topology", path)
+        fps = _member(data, "fps", path) if "fps" in data.files else None
+        faces = _member(data, "faces", path) if "faces" in data.files else None
     if v.ndim != 3 or v.shape[2] != 3 or v.shape[0] == 0 or v.dtype.kind != "f":
         raise ValueError(f"{path}: vertices: expected floats of shape (T, N, 3) with T >= 1, got {v.dtype} {v.shape}")
     bad = np.flatnonzero(~np.isfinite(v).all(axis=(1, 2)))
     if bad.size:
         shown = ", ".join(str(i) for i in bad[:10]) + (", ..." if bad.size > 10 else "")
         raise ValueError(f"{path}: vertices: NaN/inf at frames {shown} ({bad.size} of {len(v)} frames)")
-    if topo.shape != () or topo.dtype.kind not in "US":
-        raise ValueError(f"{path}: topology: expected a string, got {topo.dtype} {topo.shape}")
     if fps is not None:
         if fps.size != 1 or fps.dtype.kind not in "fiu":
             raise ValueError(f"{path}: fps: expected a number, got {fps.dtype} {fps.shape}")
@@ -81,7 +78,7 @@ def _read(path: Path) -> tuple[np.ndarray, str, float | None]:
             raise ValueError(
                 f"{path}: faces: expected integer triangles (F, 3) with ids in [0, {n}), got {faces.shape}"
             )
-    return v, str(topo), fps
+    return v, _string(topo, path, "topology"), fps
 
 
 def _template(path: Path, n: int) -> tuple[np.ndarray, object]:
