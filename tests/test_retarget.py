@@ -104,6 +104,8 @@ def test_positions_only(layer):
 
 def test_bad_input(layer):
     pos = torch.zeros(4, 3, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match="layer: expected a BodyLayer with an identity backend"):
+        retarget(object(), pos, ["Hips", "Chest", "Head"])
     with pytest.raises(ValueError, match=r"joints: expected canonical joint names.*'Pelvis'"):
         retarget(layer, pos, ["Hips", "Pelvis", "Head"])
     with pytest.raises(ValueError, match=r"mapped once, got \['Head'\]"):

@@ -279,6 +279,8 @@ def retarget(
     for long position-only motions).
     """
     cfg = config or RetargetConfig()
+    if not isinstance(layer, BodyLayer) or layer.identity is None:
+        raise ValueError("layer: expected a BodyLayer with an identity backend (e.g. BodyLayer.from_pca())")
     ref = layer.tpose_orient
     mapped = _mapped_index(layer, joints)
     m = len(mapped)
