@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from ..body import BodyLayer
-from ..fitting.retarget import RetargetConfig, bone_pairs, fit_bone_lengths, retarget
+from ..fitting.retarget import RetargetConfig, fit_tpose_offsets, retarget
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..io.asfamc import read_asf_amc
 from ..io.bvh import read_bvh as read_bvh_file
@@ -268,11 +268,10 @@ def _by_name(
     rot = torch.as_tensor(sk.rotations[:, cols], dtype=torch.float64)
     pose = matrix_to_axis_angle(rot).numpy().astype(np.float32)
     transl = (sk.translations[:, 0] * scale).astype(np.float32)
-    # The identity from the rest offsets (each joint's distance to its parent in the T-pose).
-    mapped = list(range(1, len(JOINT_NAMES)))
-    pairs = bone_pairs([int(p) for p in layer.rig_tree.parents], mapped)
-    lengths = torch.as_tensor([np.linalg.norm(sk.offsets[cols[b]]) * scale for _, b in pairs], dtype=dtype)
-    params, bone_err = fit_bone_lengths(layer, mapped, lengths, cfg)
+    # The identity from the rest offsets (world-axis vectors in the T-pose): all coefficients, linear.
+    full = _layer(128, dtype)
+    offsets = torch.as_tensor(sk.offsets[cols] * scale, dtype=dtype)
+    params, bone_err = fit_tpose_offsets(full, offsets)
     identity = params.double().numpy().astype(np.float32)
     motion = Motion(pose, transl, float(sk.fps), identity, "pca", source)
     stats = {"frames": sk.num_frames, "fps": float(sk.fps), "mapped_joints": 77, "metres_per_unit": scale}

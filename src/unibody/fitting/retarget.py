@@ -43,7 +43,7 @@ from ..geometry.rotations import matrix_to_axis_angle, shortest_arc, skew
 from ._gauss_newton import rotate_joints
 from .shape_fit import param_limits
 
-__all__ = ["RetargetConfig", "RetargetResult", "bone_pairs", "fit_bone_lengths", "retarget"]
+__all__ = ["RetargetConfig", "RetargetResult", "bone_pairs", "fit_bone_lengths", "fit_tpose_offsets", "retarget"]
 
 # Canonical joints that follow their parent when unmapped (spine and neck chains).
 _FOLLOW_PARENT = frozenset({"Spine1", "Spine2", "Chest", "Neck1", "Neck2"})
@@ -184,6 +184,51 @@ def fit_bone_lengths(
     with torch.no_grad():
         pos, _ = _tpose_joints(layer, layer.prepare_identity(params[None]))
         return params, torch.linalg.vector_norm(pos[0, a] - pos[0, b], dim=-1) - target.to(ref)
+
+
+def fit_tpose_offsets(
+    layer: BodyLayer, offsets: torch.Tensor, ridge: float = 1e-12
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Identity parameters (K,) of every component whose T-pose joint offsets match ``offsets``.
+
+    For a skeleton that *is* the canonical one (a canonical BVH): each joint's T-pose offset
+    from its parent, in world axes, is known as a vector, so the fit is a linear least-squares
+    problem in all K coefficients (joints linearised by finite differences, as in
+    :func:`fit_bone_lengths`, relinearised twice), with a tiny ridge for the directions that do
+    not move any joint. Coefficients are kept within the backend's limits.
+
+    Args:
+        offsets: (77, 3) m, joint k+1's T-pose position minus its parent's (row 0, the Hips, unused).
+
+    Returns:
+        ``(params (K,), residual (76,) m)``: the distance between fitted and given offsets of joints 2..77.
+    """
+    check_shape(offsets, f"{layer.num_joints - 1} 3", name="offsets")
+    check_finite(offsets, "offsets")
+    parents = torch.as_tensor([int(p) for p in layer.rig_tree.parents])
+    child = torch.arange(2, layer.num_joints)
+    ref = layer.tpose_orient
+    k = layer.identity.num_params
+    lim = param_limits(layer.identity).to(ref).double()
+    target = offsets[1:].double().reshape(-1)
+    c = target.new_zeros(k)
+
+    def offsets_at(params: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            pos, _ = _tpose_joints(layer, layer.prepare_identity(params.to(ref)))
+        pos = pos.double()
+        return (pos[:, child] - pos[:, parents[child]]).reshape(len(params), -1)
+
+    for _ in range(3):
+        step = torch.where(c > 0, -1.0, 1.0).double()
+        probe = c[None].repeat(k + 1, 1)
+        probe[1:] += torch.diag(step)
+        d = offsets_at(probe)
+        jac = (d[1:] - d[0]) / step[:, None]  # (K, 3N)
+        lhs = jac @ jac.T + ridge * torch.eye(k, dtype=jac.dtype)
+        c = torch.minimum(torch.maximum(c + torch.linalg.solve(lhs, jac @ (target - d[0])), lim[:, 0]), lim[:, 1])
+    residual = torch.linalg.vector_norm((offsets_at(c[None])[0] - target).reshape(-1, 3), dim=-1)
+    return c.to(ref), residual.to(ref)
 
 
 def _fit_linear(
