@@ -7,8 +7,11 @@ The contract every format module follows (``unibody convert`` dispatches on it):
   and per-file statistics; bad input raises ``ValueError`` with one line naming the file.
 - a **writer** ``write_<format>(motion: Motion, path: Path, options: ConvertOptions) -> None``
   writes exactly ``path``, atomically (:mod:`unibody.io.atomic`).
+
+The whole command is :func:`unibody.convert.run.run`; docs/convert.md describes the formats.
 """
 
 from ._types import Converted, ConvertOptions
+from .formats import FORMATS, detect, reader, writer
 
-__all__ = ["ConvertOptions", "Converted"]
+__all__ = ["FORMATS", "ConvertOptions", "Converted", "detect", "reader", "writer"]

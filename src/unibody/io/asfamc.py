@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .bvh import MAX_FRAMES, MAX_JOINTS, euler_to_matrix
+from .bvh import MAX_FRAMES, MAX_JOINTS, euler_to_matrix, number_token
 from .skeletal import SkeletalMotion
 
 __all__ = ["read_asf", "read_asf_amc", "AsfSkeleton"]
@@ -94,14 +94,7 @@ def acclaim_rotation(angles: np.ndarray, order: str) -> np.ndarray:
     return euler_to_matrix(angles[..., ::-1], order[::-1])
 
 
-def _num(tok: str, what: str, where: str, line: int) -> float:
-    try:
-        value = float(tok)
-    except ValueError:
-        raise ValueError(f"{where}: line {line}: expected a number for {what}, got {tok!r}") from None
-    if not np.isfinite(value):
-        raise ValueError(f"{where}: line {line}: expected a finite number for {what}, got {tok!r}")
-    return value
+_num = number_token
 
 
 def _order(tok: str, where: str, line: int) -> str:

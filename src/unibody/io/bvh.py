@@ -90,6 +90,17 @@ def matrix_to_euler(R: np.ndarray, order: str) -> np.ndarray:
     return np.stack([a, b, c], axis=-1)
 
 
+def number_token(tok: str, what: str, where: str, line: int) -> float:
+    """A finite float from one token of a text file; ValueError naming the file, line and field."""
+    try:
+        value = float(tok)
+    except ValueError:
+        raise ValueError(f"{where}: line {line}: expected a number for {what}, got {tok!r}") from None
+    if not np.isfinite(value):
+        raise ValueError(f"{where}: line {line}: expected a finite number for {what}, got {tok!r}")
+    return value
+
+
 class _Tokens:
     """Whitespace tokens of the hierarchy with their line numbers."""
 
@@ -124,13 +135,7 @@ class _Tokens:
 
     def number(self, what: str) -> float:
         tok, line = self.next(what)
-        try:
-            value = float(tok)
-        except ValueError:
-            raise ValueError(f"{self.where}: line {line}: expected a number for {what}, got {tok!r}") from None
-        if not np.isfinite(value):
-            raise ValueError(f"{self.where}: line {line}: expected a finite number for {what}, got {tok!r}")
-        return value
+        return number_token(tok, what, self.where, line)
 
 
 def _parse_hierarchy(lines: list[str], where: str) -> tuple[list[str], list[int], list, list[list[str]]]:
