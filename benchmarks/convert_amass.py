@@ -62,6 +62,25 @@ def smooth_take(frames: int, rng: np.random.Generator, fps: float = 120.0) -> tu
     return poses, trans
 
 
+def write_takes(folder: Path, takes: int, frames: int, rng: np.random.Generator) -> list[Path]:
+    """``takes`` AMASS SMPL-X files (female, 120 fps) of :func:`smooth_take` motions in ``folder``."""
+    paths = []
+    for i in range(takes):
+        poses, trans = smooth_take(frames, rng)
+        path = folder / f"take_{i:03d}.npz"
+        np.savez(
+            path,
+            poses=poses,
+            trans=trans,
+            betas=rng.normal(size=16),
+            gender=np.array("female"),
+            mocap_frame_rate=np.array(120.0),
+            surface_model_type=np.array("smplx"),
+        )
+        paths.append(path)
+    return paths
+
+
 def _matrix_to_axis_angle(r: np.ndarray) -> np.ndarray:
     from unibody.geometry.rotations import matrix_to_axis_angle
 
@@ -89,20 +108,7 @@ def main() -> None:
         write_npz(root / "SMPLX_FEMALE.npz", model)
         amass.topology_transfer = lambda *a, **k: copy.deepcopy(transfer)
         print(f"model file generated in {time.perf_counter() - t0:.1f} s")
-        takes = []
-        for i in range(args.takes):
-            poses, trans = smooth_take(args.frames, rng)
-            path = root / f"take_{i:03d}.npz"
-            np.savez(
-                path,
-                poses=poses,
-                trans=trans,
-                betas=rng.normal(size=16),
-                gender=np.array("female"),
-                mocap_frame_rate=np.array(120.0),
-                surface_model_type=np.array("smplx"),
-            )
-            takes.append(path)
+        takes = write_takes(root, args.takes, args.frames, rng)
         rows = [run(preset, takes, root, args.batch) for preset in args.presets]
     frames = args.takes * args.frames
     print()
