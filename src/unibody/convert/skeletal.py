@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import time
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +34,7 @@ from ..io.bvh import read_bvh as read_bvh_file
 from ..io.skeletal import SkeletalMotion
 from ..motion import Motion
 from ..rig import JOINT_NAMES
+from ._body import _layer as _body_layer
 from ._types import Converted, ConvertOptions
 
 __all__ = ["MIN_MAPPED", "NAME_RULES", "UNITS", "map_joints", "read_amc", "read_bvh", "skeletal_to_motion"]
@@ -204,9 +204,10 @@ def metres_per_unit(sk: SkeletalMotion, units: str | None, where: str) -> float:
     return _DETECT[guess]
 
 
-@lru_cache(maxsize=2)
 def _layer(num_components: int, dtype: torch.dtype) -> BodyLayer:
-    return BodyLayer.from_pca(num_components=num_components, dtype=dtype)
+    """The PCA layer of ``num_components`` (the one cache of :mod:`unibody.convert._body`: the
+    128-component layer that fits a canonical BVH is also the one its motion plays on)."""
+    return _body_layer("pca", num_components, dtype)
 
 
 _COINCIDENT_M = 0.01
