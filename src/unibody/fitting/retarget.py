@@ -160,8 +160,8 @@ def fit_bone_lengths(
     k = min(config.num_components, k_all)
     lim = param_limits(layer.identity)[:k].to(ref).clamp(-config.max_coeff, config.max_coeff)
     lo, hi = lim[:, 0].double(), lim[:, 1].double()
-    a = torch.tensor([mapped[i] for i, _ in bones], dtype=torch.long)
-    b = torch.tensor([mapped[j] for _, j in bones], dtype=torch.long)
+    a = torch.tensor([mapped[i] for i, _ in bones], dtype=torch.long, device=ref.device)
+    b = torch.tensor([mapped[j] for _, j in bones], dtype=torch.long, device=ref.device)
     target = lengths.double()
 
     def full(c: torch.Tensor) -> torch.Tensor:
@@ -205,9 +205,9 @@ def fit_tpose_offsets(
     """
     check_shape(offsets, f"{layer.num_joints - 1} 3", name="offsets")
     check_finite(offsets, "offsets")
-    parents = torch.as_tensor([int(p) for p in layer.rig_tree.parents])
-    child = torch.arange(2, layer.num_joints)
     ref = layer.tpose_orient
+    parents = torch.as_tensor([int(p) for p in layer.rig_tree.parents], device=ref.device)
+    child = torch.arange(2, layer.num_joints, device=ref.device)
     k = layer.identity.num_params
     lim = param_limits(layer.identity).to(ref).double()
     target = offsets[1:].double().reshape(-1)
@@ -225,7 +225,7 @@ def fit_tpose_offsets(
         probe[1:] += torch.diag(step)
         d = offsets_at(probe)
         jac = (d[1:] - d[0]) / step[:, None]  # (K, 3N)
-        lhs = jac @ jac.T + ridge * torch.eye(k, dtype=jac.dtype)
+        lhs = jac @ jac.T + ridge * torch.eye(k, dtype=jac.dtype, device=jac.device)
         c = torch.minimum(torch.maximum(c + torch.linalg.solve(lhs, jac @ (target - d[0])), lim[:, 0]), lim[:, 1])
     residual = torch.linalg.vector_norm((offsets_at(c[None])[0] - target).reshape(-1, 3), dim=-1)
     return c.to(ref), residual.to(ref)
@@ -371,8 +371,8 @@ def _rounds(layer, positions, mapped, orientations, rest_positions, rest_orienta
             offsets = local_err.mean(0)
             targets = positions + (offset_frames @ offsets[..., None]).squeeze(-1)
         if bones:
-            ia = torch.tensor([i for i, _ in bones])
-            ib = torch.tensor([j for _, j in bones])
+            ia = torch.tensor([i for i, _ in bones], device=targets.device)
+            ib = torch.tensor([j for _, j in bones], device=targets.device)
             lengths = torch.linalg.vector_norm(targets[:, ia] - targets[:, ib], dim=-1).median(0).values
         else:
             lengths = positions.new_zeros(0)
@@ -506,8 +506,9 @@ class _Solver:
         self.layer, self.prepared, self.mapped, self.cfg = layer, prepared, mapped, cfg
         ref = layer.tpose_orient
         solved, group, n_groups, parents = _solve_structure(layer, mapped, has_rot)
-        self.solved = torch.tensor(solved)
-        self.group = torch.tensor([group[k] for k in solved])
+        dev = ref.device  # index tensors used with index_add_/index_copy must share the device
+        self.solved = torch.tensor(solved, device=dev)
+        self.group = torch.tensor([group[k] for k in solved], device=dev)
         self.n_groups, self.parents_list = n_groups, parents
         m = len(mapped)
         # (mapped column, solved joint) pairs where the joint moves the column's position.
@@ -524,9 +525,9 @@ class _Solver:
                         pair_joint.append(a)
                         pair_group.append(group[a])
                 a = parents[a]
-        self.pair_col = torch.tensor(pair_col, dtype=torch.long)
-        self.pair_joint = torch.tensor(pair_joint, dtype=torch.long)
-        self.pair_group = torch.tensor(pair_group, dtype=torch.long)
+        self.pair_col = torch.tensor(pair_col, dtype=torch.long, device=dev)
+        self.pair_joint = torch.tensor(pair_joint, dtype=torch.long, device=dev)
+        self.pair_group = torch.tensor(pair_group, dtype=torch.long, device=dev)
         n = 3 + 3 * n_groups
         self.n = n
         eye = torch.eye(3, dtype=ref.dtype)
@@ -537,7 +538,7 @@ class _Solver:
         self.rot_jac = (cfg.orientation_weight * self.rot_jac.reshape(3 * m, n)).to(ref)
         s = len(solved)
         prior_j = torch.zeros(s, 3, n_groups, 3, dtype=ref.dtype)
-        prior_j[torch.arange(s), :, self.group, :] = eye
+        prior_j[torch.arange(s), :, self.group.cpu(), :] = eye
         self.prior_jac = torch.cat([torch.zeros(s, 3, 3, dtype=ref.dtype), prior_j.reshape(s, 3, 3 * n_groups)], -1)
         self.prior_jac = (cfg.prior_weight * self.prior_jac.reshape(3 * s, n)).to(ref)
         self.has_rot = has_rot
@@ -545,7 +546,7 @@ class _Solver:
         if has_rot:
             self.const_jtj = self.const_jtj + self.rot_jac.T @ self.rot_jac
         self.eye = torch.eye(n, dtype=ref.dtype, device=ref.device)
-        self.mapped_t = torch.tensor(mapped)
+        self.mapped_t = torch.tensor(mapped, device=dev)
         self.parents_t = layer.parents
 
     def init_from_rotations(self, zero_local: torch.Tensor, pos: torch.Tensor, rot: torch.Tensor):

@@ -45,7 +45,7 @@ def pick_frames(vis: torch.Tensor, n: int) -> torch.Tensor:
             continue
         c = counts[lo:hi].double()
         mid = (lo + hi - 1) / 2
-        score = c - 1e-3 * (torch.arange(lo, hi, dtype=torch.float64) - mid).abs() / max(1, hi - lo)
+        score = c - 1e-3 * (torch.arange(lo, hi, dtype=torch.float64, device=c.device) - mid).abs() / max(1, hi - lo)
         best = lo + int(score.argmax())
         if counts[best] >= 3:
             out.append(best)

@@ -141,8 +141,9 @@ def place_markers(
     """
     b = vertices.shape[0]
     n = vertex_normals(vertices, faces) if normals is None else normals
-    ids = vertex_ids.expand(b, -1) if vertex_ids.dim() == 1 else vertex_ids
-    d = distance.to(vertices.dtype)
+    ids = vertex_ids.to(vertices.device)  # a layout's tensors live on the CPU
+    ids = ids.expand(b, -1) if ids.dim() == 1 else ids
+    d = distance.to(vertices)
     d = d.expand(b, -1) if d.dim() == 1 else d
     gather = ids[..., None].expand(-1, -1, 3)
     return vertices.gather(1, gather) + n.gather(1, gather) * d[..., None]

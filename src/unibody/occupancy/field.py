@@ -117,7 +117,10 @@ class BodyOccupancy(nn.Module):
         if isinstance(body, BodyOutput):
             vertices = body.vertices
         b, k = enc.bias.shape[:2]
-        u = 2 * torch.rand(b, k, samples, 3, generator=generator, dtype=enc.bias.dtype) - 1
+        # Drawn where the generator lives (the CPU when there is none: the same samples on any
+        # device for a CPU generator), then moved; a CUDA generator draws on its device.
+        where = generator.device if generator is not None else torch.device("cpu")
+        u = 2 * torch.rand(b, k, samples, 3, generator=generator, dtype=enc.bias.dtype, device=where) - 1
         u = u.to(enc.bias.device)
         local = enc.center[:, :, None] + u * enc.half[:, :, None]
         pts = torch.einsum("bknd,bkcd->bknc", local, enc.rotation) + enc.origin[:, :, None]

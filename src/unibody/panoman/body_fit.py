@@ -51,7 +51,7 @@ class BodyFit:
 def regressor_matrix(ids: torch.Tensor, weights: torch.Tensor, num_vertices: int) -> torch.Tensor:
     """Sparse (R, V) float64 tensor of a regressor given as rows of vertex ids (R, k) and weights (R, k)."""
     r, k = ids.shape
-    idx = torch.stack([torch.arange(r).repeat_interleave(k), ids.reshape(-1)])
+    idx = torch.stack([torch.arange(r, device=ids.device).repeat_interleave(k), ids.reshape(-1)])
     return torch.sparse_coo_tensor(idx, weights.reshape(-1).double(), (r, num_vertices)).coalesce()
 
 
@@ -68,14 +68,15 @@ def sparse_joint_regressor(
     bodies (paper 004 §5.2: joints become vertex constraints by linear regression).
 
     Returns:
-        (rows (77, k) vertex ids, weights (77, k)) for joints 1..77.
+        (rows (77, k) vertex ids, weights (77, k)) for joints 1..77, on the device of ``meshes``.
     """
     from ..rig import Rig
 
     rig = Rig.canonical()
     m = meshes.double()
-    dense = torch.zeros(rig.num_joints, rig.num_vertices, dtype=torch.float64)
-    dense[rig.rbf_joint.long(), rig.rbf_vertex.long()] = rig.rbf_weight.double()
+    dev = m.device
+    dense = torch.zeros(rig.num_joints, rig.num_vertices, dtype=torch.float64, device=dev)
+    dense[rig.rbf_joint.long().to(dev), rig.rbf_vertex.long().to(dev)] = rig.rbf_weight.to(dev, torch.float64)
     target = torch.einsum("jv,bvc->bjc", dense, m)  # (B, J, 3)
     k = vertices_per_joint
     ids = dense[1:].abs().topk(k, dim=1).indices  # (77, k)
@@ -88,11 +89,11 @@ def sparse_joint_regressor(
         y = target[:, j].reshape(-1)
         y = y - y.mean()
         # ridge towards the renormalised RBF weights, then the affine constraint sum(w) = 1
-        lhs = a.T @ a + ridge * len(y) * 1e-4 * torch.eye(k, dtype=a.dtype)
+        lhs = a.T @ a + ridge * len(y) * 1e-4 * torch.eye(k, dtype=a.dtype, device=dev)
         rhs = a.T @ y + ridge * len(y) * 1e-4 * w0
-        kkt = torch.zeros(k + 1, k + 1, dtype=a.dtype)
+        kkt = a.new_zeros(k + 1, k + 1)
         kkt[:k, :k], kkt[:k, k], kkt[k, :k] = lhs, 1.0, 1.0
-        sol = torch.linalg.solve(kkt, torch.cat([rhs, torch.ones(1, dtype=a.dtype)]))
+        sol = torch.linalg.solve(kkt, torch.cat([rhs, a.new_ones(1)]))
         weights.append(sol[:k])
     return ids, torch.stack(weights)
 
@@ -129,10 +130,10 @@ def _pose_from_joints(layer: BodyLayer, prepared, joint_targets: torch.Tensor) -
     r0, p0 = prepared.rest_rotations.expand(b, -1, -1, -1), prepared.rest_joints.expand(b, -1, -1)
     target = torch.cat([p0[:, :1], joint_targets], dim=1)  # Root row: unused
     children = layer.rig_tree.children
-    delta = torch.eye(3, dtype=dtype).repeat(b, len(children), 1, 1)
+    delta = torch.eye(3, dtype=dtype, device=joint_targets.device).repeat(b, len(children), 1, 1)
     for level in layer.rig_tree.levels[1:]:
         for j in level:
-            p = int(layer.parents[j])
+            p = layer.rig_tree.parents[j]  # a Python int: no device sync per joint
             kids = children[j]
             if not kids:
                 delta[:, j] = delta[:, p]
@@ -181,6 +182,9 @@ def fit_body(
         pose_prior: weight of |pose|^2 in stage 2 (per joint, radians^2, against m^2 residuals).
     """
     joint_targets = joint_targets.detach()
+    # The constraint indices and the regressor are constants: take them to the targets' device.
+    dev = joint_targets.device
+    vertex_ids, regressor = vertex_ids.to(dev), regressor.to(dev)
     shape0 = _shape_from_bones(layer, joint_targets, shape_steps)
     with torch.no_grad():
         pose0 = _pose_from_joints(layer, layer.prepare_identity(shape0), joint_targets)

@@ -43,13 +43,18 @@ def fit(
         reference: (V, 3) m, the initial mesh, in the target's place.
         pose: optional (77, 3) T-pose-relative axis-angle joint rotations (motion-data prior).
         config: weights and schedule of the shell fit (None: the defaults).
+
+    ``alpha``, ``reference`` and ``pose`` may be on any device; the fit runs on the CPU (scipy)
+    and returns numpy arrays.
     """
     config = ShellConfig() if config is None else config
-    alpha = alpha.reshape(-1).double()
-    init = reference.reshape(-1, 3).double().numpy()
+    # The shell fit is numpy/scipy and the model lives on the CPU: inputs may come from any
+    # device (e.g. a fit_body on CUDA) and with gradients; they are copied to the CPU here.
+    alpha = alpha.detach().reshape(-1).to("cpu", torch.float64)
+    init = reference.detach().reshape(-1, 3).to("cpu", torch.float64).numpy()
     targets = None
     if pose is not None:
-        beta0 = model.beta_from_pose(pose.reshape(1, 77, 3).double())[0].numpy()
+        beta0 = model.beta_from_pose(pose.detach().reshape(1, 77, 3).to("cpu", torch.float64))[0].numpy()
         mask = np.zeros(model.num_beta)
         mask[model.beta_net.out_index.numpy()] = 1.0
         targets = (mask, beta0)

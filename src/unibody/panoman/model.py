@@ -257,7 +257,7 @@ class PanoMan(nn.Module):
         p = default_model_path() if path is None else Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"path: no PanoMan model at {p}; build one with scripts/build_panoman.py")
-        s = torch.load(p, weights_only=True)
+        s = torch.load(p, map_location="cpu", weights_only=True)
         if s.get("format") != FORMAT:
             raise ValueError(f"path: {p} is not a {FORMAT} file (format {s.get('format')!r})")
         decs = [
