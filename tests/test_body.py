@@ -173,7 +173,7 @@ def test_anny_param_errors(anny_layer64):
     ok = torch.full((1, 6), 0.5, dtype=torch.float64)
     with pytest.raises(ValueError, match=r"identity params: phenotype 'age' must lie in \[0, 1\], got 1.5 at batch 0"):
         anny_layer64.prepare_identity(ok.clone().index_fill_(1, torch.tensor([1]), 1.5))
-    with pytest.raises(ValueError, match=r"identity params: expected shape \(B, 6\), got \(1, 5\)"):
+    with pytest.raises(ValueError, match=r"identity params: expected shape \(B, 6\) or \(B, 11\), got \(1, 5\)"):
         anny_layer64.prepare_identity(ok[:, :5])
     with pytest.raises(ValueError, match="identity params: expected finite values"):
         anny_layer64.prepare_identity(ok * float("nan"))
