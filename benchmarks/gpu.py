@@ -11,10 +11,11 @@ with ``torch.cuda.synchronize()`` around each call on CUDA):
   by seeded 0.3 rad poses: frames/s and the mean per-vertex error (mm) of the re-posed result.
 - **mocap**: the shipped two-stage ``cmu41`` labeler (orienter + retry) on a synthetic session
   (``SyntheticMocap``, held-out pool seed), ``label_frames`` at batch 256: frames/s and accuracy.
-- **peer**: py-soma-x (``soma.SOMALayer(identity_model_type="anny", enable_procedural_transforms=False,
-  mode="warp")``, asset folder from ``benchmarks/peer.py`` / ``_peer_assets.py``) on the same device in
-  the same process, posing and full forward at the same batches; only when ``import soma`` works and
-  ``benchmarks/peer.py`` exists. Skipped otherwise, with the reason printed.
+- **peer**: py-soma-x (``peer.peer_layer``: ``soma.SOMALayer(identity_model_type="anny",
+  enable_procedural_transforms=False, mode="warp")`` on the asset folder built offline by
+  ``_peer_assets.py``) on the same device in the same process, timed by ``peer.bench_speed`` (calls
+  interleaved with unibody's), posing and full forward at the same batches; only when ``import soma``
+  works (``pip install '.[peer]'``) and ``benchmarks/peer.py`` exists. Skipped otherwise, with the reason.
 
 ``--budget`` seconds (default 400) bounds the whole run: a section that would start after it is
 skipped and says so (``benchmarks/gpu.sh`` also kills the run at 420 s).
@@ -155,37 +156,21 @@ def _peer_reason() -> str | None:
     return None
 
 
-def section_peer(device: str, batches: list[int], fwd_batches: list[int], min_time: float) -> None:
-    sys.path.insert(0, str(HERE))
-    import peer  # noqa: F401  (benchmarks/peer.py: the side-by-side benchmark; its asset builder when it has one)
-    import soma
+def section_peer(layer, device: str, batches: list[int], fwd_batches: list[int], reps: int) -> None:
+    """py-soma-x beside unibody through benchmarks/peer.py (its layer, its interleaved timing)."""
+    import argparse as _argparse
 
-    build = getattr(peer, "build_peer_assets", None)
-    if build is None:
-        from _peer_assets import build_peer_assets as build
+    sys.path.insert(0, str(HERE))
+    import peer  # benchmarks/peer.py (imports benchmarks/_peer_assets.py)
+
     t = time.perf_counter()
-    layer = soma.SOMALayer(
-        data_root=build(), identity_model_type="anny", enable_procedural_transforms=False, mode="warp", device=device
-    )
-    built = time.perf_counter() - t
-    print(f"\n### Peer: py-soma-x {getattr(soma, '__version__', '?')} on {device} (built in {built:.0f} s)\n")
-    gen = torch.Generator().manual_seed(0)
-    print("| section | batch | meshes/s | ms/call |\n|---|---|---|---|")
-    with torch.no_grad():
-        layer.prepare_identity(torch.full((1, 6), 0.5, device=device))
-        for b in batches:
-            pose, transl = _poses(b, gen).to(device), (0.1 * torch.randn(b, 3, generator=gen)).to(device)
-            t = median_time(
-                lambda p=pose, tr=transl: layer.pose(p, transl=tr, apply_correctives=False), device, min_time
-            )
-            print(f"| pose | {b} | {b / t:,.0f} | {1e3 * t:.3f} |", flush=True)
-        for b in fwd_batches:
-            params = torch.rand(b, 6, generator=gen).to(device)
-            pose, transl = _poses(b, gen).to(device), (0.1 * torch.randn(b, 3, generator=gen)).to(device)
-            t = median_time(
-                lambda c=params, p=pose, tr=transl: layer(p, c, transl=tr, apply_correctives=False), device, min_time
-            )
-            print(f"| full forward | {b} | {b / t:,.0f} | {1e3 * t:.3f} |", flush=True)
+    other = peer.peer_layer(device)
+    print(f"\n### Peer: py-soma-x on {device}, beside unibody (built in {time.perf_counter() - t:.0f} s)")
+    print("\nbenchmarks/peer.py's bench_speed: the two libraries' calls interleaved, the median per call.")
+    for section, sizes in (("pose", batches), ("forward", fwd_batches)):
+        ns = _argparse.Namespace(sections=(section,), batches=sizes, seed=0, reps=reps, device=device)
+        with torch.no_grad():
+            peer.bench_speed(layer, other, ns)
 
 
 def describe(device: str) -> str:
@@ -236,7 +221,7 @@ def main(argv: list[str] | None = None) -> None:
     if reason is not None:
         print(f"\n_peer: skipped ({reason})_")
     elif budget.allows("peer", 120):
-        section_peer(device, args.batches, args.forward_batches, args.min_time)
+        section_peer(layer, device, args.batches, args.forward_batches, reps=5 if args.small else 21)
     print(f"\nTotal: {time.perf_counter() - T0:.0f} s")
 
 
