@@ -248,25 +248,37 @@ def plot(rates: dict[str, dict[int, float]], out: Path) -> None:
     for i, (name, r) in enumerate(rates.items()):
         colour = colours[name.split()[0]]
         points = [at(b, r[b]) for b in sorted(r)]
-        dashed = name.endswith("forward")
-        for a, b in zip(points, points[1:], strict=False):
-            if dashed:
-                for t in range(0, 10, 2):
-                    draw.line([_lerp(a, b, t / 10), _lerp(a, b, (t + 1) / 10)], fill=colour, width=3)
-            else:
-                draw.line([a, b], fill=colour, width=3)
+        ly = top + 20 + 24 * i
+        for a, b in [*zip(points, points[1:], strict=False), ((w - right + 15, ly), (w - right + 45, ly))]:
+            _line(draw, a, b, colour, dashed=name.endswith("forward"))
         for px, py in points:
             draw.ellipse([px - 4, py - 4, px + 4, py + 4], fill=colour)
-        ly = top + 20 + 24 * i
-        draw.line([w - right + 15, ly, w - right + 45, ly], fill=colour, width=3 if not dashed else 1)
-        draw.text((w - right + 52, ly), name, fill="black", anchor="lm")
+        draw.text(
+            (w - right + 52, ly),
+            f"{name} ({'dashed' if name.endswith('forward') else 'solid'})",
+            fill="black",
+            anchor="lm",
+        )
     with atomic_path(out) as tmp:
         img.save(tmp, format="PNG")
     print(f"\nwrote {out}")
 
 
-def _lerp(a: tuple[float, float], b: tuple[float, float], t: float) -> tuple[float, float]:
-    return a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])
+def _line(draw, a: tuple[float, float], b: tuple[float, float], colour, *, dashed: bool) -> None:
+    """A 3-pixel line from a to b, solid or in five dashes."""
+    if not dashed:
+        draw.line([a, b], fill=colour, width=3)
+        return
+    for t in range(0, 10, 2):
+        lo, hi = t / 10, (t + 1) / 10
+        draw.line(
+            [
+                (a[0] + lo * (b[0] - a[0]), a[1] + lo * (b[1] - a[1])),
+                (a[0] + hi * (b[0] - a[0]), a[1] + hi * (b[1] - a[1])),
+            ],
+            fill=colour,
+            width=3,
+        )
 
 
 def main() -> None:
