@@ -44,7 +44,9 @@ def test_output_fields():
         "rest_rotations",
         "rest_joints",
         "offsets",
+        "skin_values",  # derived by prepare_rest, not a constructor argument
     ]
+    assert [f.name for f in dataclasses.fields(unibody.PreparedIdentity) if f.init][-1] == "offsets"
     assert [f.name for f in dataclasses.fields(unibody.InversionResult)] == [
         "pose",
         "rotations",

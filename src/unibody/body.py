@@ -16,16 +16,35 @@ Root at the origin); drop row 0 for the official (B, 77, 3).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 
 from ._checks import check_finite, check_like, check_shape, check_tensor
-from .geometry.kinematics import pose_transforms
+from .geometry.kinematics import (
+    KinematicTree,
+    batch_major,
+    chain,
+    compose,
+    homogeneous,
+    joint_major,
+    pose_transforms,
+    posed_local,
+    rest_inverse,
+)
 from .geometry.rotations import axis_angle_to_matrix, rot6d_to_matrix
-from .geometry.skinning import Skinning, lbs_sparse, register_skin_layout, registered_skin_layout, skin_layout
+from .geometry.skinning import (
+    Skinning,
+    lbs_joint_major,
+    register_skin_layout,
+    registered_skin_layout,
+    skin_layout,
+    skin_values,
+)
 from .identity.base import IdentityBackend, check_identity_backend
 from .rig import Rig
 from .skeleton import SkeletonTransfer
@@ -48,6 +67,57 @@ REST_EXTENT_M = (0.1, 10.0)
 ~4 m; below 0.1 m a mesh is collapsed or scaled down, above 10 m it is in cm or mm."""
 
 
+def _local_math(pose: torch.Tensor, kind: int, absolute: bool, left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
+    """Checked pose (B, 77, ...) of ``kind`` 0 axis-angle, 1 matrices, 2 6D -> joint-major (J, 3, 3, B).
+
+    Absolute local rotations, Root (row 0) = I; T-pose-relative ones are turned absolute with
+    the joint-major factors ``left`` = O_p(j)^T and ``right`` = O_j.
+    """
+    rot = joint_major((axis_angle_to_matrix, lambda r: r, rot6d_to_matrix)[kind](pose))
+    if not absolute:
+        rot = compose(left, compose(rot, right))
+    eye = torch.eye(3, dtype=rot.dtype, device=rot.device)[None, ..., None].expand(1, 3, 3, rot.shape[3])
+    return torch.cat([eye, rot], dim=0)
+
+
+def _rig_math(
+    tree: KinematicTree,
+    local: torch.Tensor,
+    offsets: torch.Tensor,
+    transl: torch.Tensor,
+    rest_rot: torch.Tensor,
+    rest_pos: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """FK of joint-major local rotations: world transforms (B, J, 4, 4) and skinning ones (J, 4, 3, B)."""
+    world = chain(tree, posed_local(local, offsets, transl))
+    mats = compose(world, rest_inverse(rest_rot, rest_pos))
+    world = world.permute(3, 0, 2, 1)  # (B, J, 3, 4)
+    bottom = world.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(*world.shape[:2], 1, 4)
+    return torch.cat([world, bottom], dim=-2), mats
+
+
+def _pose_math(
+    tree: KinematicTree,
+    pose: torch.Tensor,
+    kind: int,
+    absolute: bool,
+    left: torch.Tensor,
+    right: torch.Tensor,
+    offsets: torch.Tensor,
+    transl: torch.Tensor,
+    rest_rot: torch.Tensor,
+    rest_pos: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_local_math` then :func:`_rig_math`: the dense part of posing, one compilable graph."""
+    return _rig_math(tree, _local_math(pose, kind, absolute, left, right), offsets, transl, rest_rot, rest_pos)
+
+
+@functools.cache
+def _compiled_pose_math() -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
+    """:func:`_pose_math` through ``torch.compile`` (one graph for every batch size)."""
+    return torch.compile(_pose_math, dynamic=True)
+
+
 @dataclass(frozen=True, slots=True)
 class PreparedIdentity:
     """An identity fitted once, posed many times (``Bi`` is 1 or the pose batch).
@@ -57,16 +127,35 @@ class PreparedIdentity:
         rest_rotations: (Bi, J, 3, 3) world rotations of the fitted joints at rest.
         rest_joints: (Bi, J, 3) m, world positions of the fitted joints at rest.
         offsets: (Bi, J, 3) m, each joint's position in its parent's rest frame.
+        skin_values: (Bi, 4 nnz) the rest mesh's sparse skinning matrix values
+            (:func:`~unibody.geometry.skinning.skin_values`), which :meth:`BodyLayer.prepare_rest`
+            keeps so that posing the identity again skips rebuilding them (1 MB per identity in
+            float32; 0.3-0.8 ms of a batch-1 pose). Not a constructor argument: an identity
+            built or ``dataclasses.replace``-d by hand has None, and posing rebuilds them from
+            its own ``rest_vertices``, so they can never belong to another mesh.
     """
 
     rest_vertices: torch.Tensor
     rest_rotations: torch.Tensor
     rest_joints: torch.Tensor
     offsets: torch.Tensor
+    skin_values: torch.Tensor | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def batch_size(self) -> int:
         return self.rest_vertices.shape[0]
+
+    def detach(self) -> PreparedIdentity:
+        """The same identity cut from the autograd graph."""
+        out = PreparedIdentity(
+            *(t.detach() for t in (self.rest_vertices, self.rest_rotations, self.rest_joints, self.offsets))
+        )
+        return out._keep(None if self.skin_values is None else self.skin_values.detach())
+
+    def _keep(self, skin_values: torch.Tensor | None) -> PreparedIdentity:
+        """Attach the skinning values of this identity's own rest mesh (BodyLayer only)."""
+        object.__setattr__(self, "skin_values", skin_values)  # frozen: a derived cache, set once
+        return self
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,10 +225,15 @@ class BodyLayer(nn.Module):
         parents = torch.tensor([max(p, 0) for p in rig.tree.parents])
         self.register_buffer("parents", parents, persistent=False)
         self.register_buffer("tpose_orient", rig.tpose_orient, persistent=False)
+        # R_abs,j = O_p(j)^T R_rel,j O_j: both factors per posed joint, joint-major, gathered once.
+        orient = rig.tpose_orient[None]
+        self.register_buffer("_tpose_left", joint_major(orient[:, parents[1:]].transpose(-1, -2)), persistent=False)
+        self.register_buffer("_tpose_right", joint_major(orient[:, 1:]), persistent=False)
         self.register_buffer("faces", rig.faces, persistent=False)
         self.register_buffer("skin_weight", rig.skin_weight, persistent=False)
         register_skin_layout(self, skin_layout(rig.skin_vertex, rig.skin_joint, rig.num_vertices, rig.num_joints))
         self.num_vertices, self.num_joints = rig.num_vertices, rig.num_joints
+        self._compiled = False
 
     @classmethod
     def from_anny(
@@ -224,7 +318,8 @@ class BodyLayer(nn.Module):
         rot, pos = self.skeleton.fit(rest_vertices)
         rp_t = rot[:, self.parents].transpose(-1, -2)
         offsets = (rp_t @ (pos - pos[:, self.parents])[..., None]).squeeze(-1)
-        return PreparedIdentity(rest_vertices, rot, pos, offsets)
+        values = skin_values(rest_vertices, self.skin_weight, registered_skin_layout(self))
+        return PreparedIdentity(rest_vertices, rot, pos, offsets)._keep(values)
 
     @staticmethod
     def _check_extent(rest: torch.Tensor) -> None:
@@ -291,17 +386,33 @@ class BodyLayer(nn.Module):
             ValueError: a wrong shape, NaN/inf, a non-rotation matrix or a degenerate 6D
                 vector (validation as in :meth:`pose`).
         """
+        kind = self._check_pose(pose)
+        return batch_major(_local_math(pose, kind, absolute, self._tpose_left, self._tpose_right))[0]
+
+    def _check_pose(self, pose: torch.Tensor, values: bool = True) -> int:
+        """The pose's kind (0 axis-angle, 1 matrices, 2 6D) after its shape, dtype and (``values``) value checks."""
         p = self.num_joints - 1
         kind = check_shape(pose, f"B {p} 3", f"B {p} 3 3", f"B {p} 6", name="pose")
         check_like(pose, self.tpose_orient, name="pose")
-        # Matrices and 6D: their rotation checks also catch NaN/inf (then reported as such).
-        (check_finite, self._check_matrices, self._check_rot6d)[kind](pose, "pose")
-        rot = (axis_angle_to_matrix, lambda r: r, rot6d_to_matrix)[kind](pose)
-        if not absolute:
-            o = self.tpose_orient  # R_abs,j = O_p(j)^T R_rel,j O_j
-            rot = o[self.parents[1:]].transpose(-1, -2) @ rot @ o[1:]
-        eye = torch.eye(3, dtype=rot.dtype, device=rot.device).expand(rot.shape[0], 1, 3, 3)
-        return torch.cat([eye, rot], dim=1)
+        if values:  # matrices and 6D: their rotation checks also catch NaN/inf (then reported as such)
+            (check_finite, self._check_matrices, self._check_rot6d)[kind](pose, "pose")
+        return kind
+
+    def compile_posing(self, enable: bool = True) -> BodyLayer:
+        """Run the dense part of :meth:`pose` (rotations, FK, skinning transforms) through ``torch.compile``.
+
+        One graph serves every batch size (``dynamic=True``); the sparse skinning product stays
+        eager. It pays off for small batches, where the eager path is dominated by per-operator
+        overhead: see ``benchmarks/forward.py --compile`` for the speed-up and the compile time
+        (tens of seconds on the first call, once per process). Needs a C++ compiler on the CPU
+        (torch inductor). ``compile_posing(False)`` returns to the eager path. Results agree with it to
+        float rounding (tests/test_body_fast.py).
+
+        Returns:
+            self.
+        """
+        self._compiled = enable
+        return self
 
     def _worst(self, bad: torch.Tensor, score: torch.Tensor) -> tuple[int, int, str]:
         """(batch, pose index, description) of the bad entry with the largest ``score``."""
@@ -369,6 +480,7 @@ class BodyLayer(nn.Module):
         *,
         transl: torch.Tensor | None = None,
         absolute: bool = False,
+        check: bool = True,
     ) -> BodyOutput:
         """Pose a prepared identity.
 
@@ -379,9 +491,14 @@ class BodyLayer(nn.Module):
                 ``absolute``).
             transl: (B, 3) m, Hips world position; None puts the Hips at the origin.
             absolute: whether ``pose`` holds absolute local rotations.
+            check: validate the values of ``pose`` and ``transl`` and guard the outputs (below).
+                False skips only that (shapes, dtypes and devices are always checked), for
+                inner loops over data already validated; the result is bit-identical.
 
         Returns:
             BodyOutput with B meshes (B may be 0: empty outputs of the right shapes).
+            ``vertices`` is a (B, V, 3) view of vertex-major storage (the sparse product's
+            layout, which saves a transposing copy); ``.contiguous()`` packs it.
 
         Validation: every entry finite. Axis-angle may have any finite magnitude (the angle is
         reduced modulo 2 pi exactly). Matrices must be rotations: ``max |R^T R - I| <= tol``
@@ -406,27 +523,60 @@ class BodyLayer(nn.Module):
         b = pose.shape[0]
         if prepared.batch_size not in (1, b):
             raise ValueError(f"prepared: identity batch {prepared.batch_size} must be 1 or the pose batch {b}")
-        local_r = self.local_rotations(pose, absolute=absolute)
+        kind = self._check_pose(pose, check)
         if transl is not None:
             check_shape(transl, "B 3", name="transl", sizes={"B": b})
             check_like(transl, self.tpose_orient, name="transl")
-            check_finite(transl, "transl")
+            if check:
+                check_finite(transl, "transl")
         else:
-            transl = local_r.new_zeros(b, 3)
-        g_rot, g_pos, vertices = self.skin_local(prepared, local_r, transl)
-        # Final guard (checked inputs cannot overflow, but transl or a hand-built prepared
-        # identity of huge magnitude can): one sum; measured on one core 15 us of a 2.8 ms
-        # B=1 pose (0.5 %), 0.3 of 11 ms at B=32 (2.8 %).
+            transl = pose.new_zeros(b, 3)
+        p = prepared
+        left, right = self._tpose_left, self._tpose_right
+        mats = None
+        if self.twist is not None:
+            local = batch_major(_local_math(pose, kind, absolute, left, right))[0]
+            g_rot, g_pos, vertices = self.twist(
+                p.rest_vertices, p.rest_rotations, p.rest_joints, p.offsets, local, transl
+            )
+            world = homogeneous(g_rot, g_pos)
+        else:
+            math = _compiled_pose_math() if self._compiled else _pose_math
+            world, mats = math(
+                self.rig_tree, pose, kind, absolute, left, right, p.offsets, transl, p.rest_rotations, p.rest_joints
+            )
+            vertices = self._skin(p, mats)
+        if check and b:
+            self._check_overflow(world, vertices, mats, p.rest_vertices)
+        return BodyOutput(vertices, world[..., :3, 3], world, p.rest_vertices.expand(b, -1, -1))
+
+    def _skin(self, prepared: PreparedIdentity, mats: torch.Tensor) -> torch.Tensor:
+        """LBS of the prepared rest mesh by joint-major skinning transforms (J, 4, 3, B)."""
+        layout = registered_skin_layout(self)
+        return lbs_joint_major(prepared.rest_vertices, mats, self.skin_weight, layout, prepared.skin_values)
+
+    @staticmethod
+    def _check_overflow(
+        world: torch.Tensor, vertices: torch.Tensor, mats: torch.Tensor | None, rest: torch.Tensor
+    ) -> None:
+        """ValueError if posing overflowed (checked inputs cannot, but a huge transl or prepared identity can).
+
+        Each vertex coordinate is a convex combination (weights >= 0, sum 1) of ``M_k [v; 1]``,
+        so ``|v'| <= 4 max|M| max(|v|, 1)``: when that bound and the joints are finite, so are
+        the vertices, and the O(B V) scan of them is skipped (it cost 5-15 % at B = 32).
+        """
         with torch.no_grad():
-            total = vertices.sum() + g_pos.sum()
-            if not bool(torch.isfinite(total)) and not (torch.isfinite(vertices).all() and torch.isfinite(g_pos).all()):
-                raise ValueError(
-                    "pose: posing gave non-finite vertices or joints (the floating-point range overflowed); "
-                    "check the magnitudes of transl and of the prepared identity"
-                )
-        bottom = g_rot.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(b, self.num_joints, 1, 4)
-        transforms = torch.cat([torch.cat([g_rot, g_pos[..., None]], dim=-1), bottom], dim=-2)
-        return BodyOutput(vertices, g_pos, transforms, prepared.rest_vertices.expand(b, -1, -1))
+            big = torch.finfo(world.dtype).max
+            if mats is not None:
+                bound = 4 * mats.abs().amax() * rest.abs().amax().clamp_min(1) + world.abs().amax()
+                if bool(bound < big):  # False for NaN
+                    return
+            if torch.isfinite(vertices).all() and torch.isfinite(world).all():
+                return
+        raise ValueError(
+            "pose: posing gave non-finite vertices or joints (the floating-point range overflowed); "
+            "check the magnitudes of transl and of the prepared identity"
+        )
 
     def skin_local(
         self, prepared: PreparedIdentity, local_rot: torch.Tensor, transl: torch.Tensor
@@ -443,11 +593,13 @@ class BodyLayer(nn.Module):
         Returns:
             ``(world_rot (B, J, 3, 3), world_pos (B, J, 3), vertices (B, V, 3))``.
         """
+        p = prepared
         if self.twist is not None:
-            p = prepared
             return self.twist(p.rest_vertices, p.rest_rotations, p.rest_joints, p.offsets, local_rot, transl)
-        g_rot, g_pos, mats = self.skin_transforms(prepared, local_rot, transl)
-        return g_rot, g_pos, lbs_sparse(prepared.rest_vertices, mats, self.skin_weight, registered_skin_layout(self))
+        world, mats = _rig_math(
+            self.rig_tree, joint_major(local_rot), p.offsets, transl, p.rest_rotations, p.rest_joints
+        )
+        return world[..., :3, :3], world[..., :3, 3], self._skin(p, mats)
 
     def skin_transforms(
         self, prepared: PreparedIdentity, local_rot: torch.Tensor, transl: torch.Tensor

@@ -105,9 +105,12 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     a = torch.where(small, 1 - t2 / 6 + t2 * t2 / 120, torch.sin(t))
     half = torch.where(small, 1 - x / 6 + x * x / 120, torch.sin(t / 2))
     b = torch.where(small, 0.5, 2.0) * half * half
-    U = skew(u)
+    # U^2 = u u^T - |u|^2 I (|u|^2 = 1 off the Taylor branch): elementwise, as a batched
+    # matmul of 3x3 matrices costs ~0.15 us per product.
+    sq = torch.where(small, t2, torch.ones_like(t2))
     eye = torch.eye(3, dtype=aa.dtype, device=aa.device)
-    return eye + a[..., None, None] * U + b[..., None, None] * (U @ U)
+    outer = u[..., :, None] * u[..., None, :]
+    return (1 - b * sq)[..., None, None] * eye + a[..., None, None] * skew(u) + b[..., None, None] * outer
 
 
 def matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:

@@ -26,12 +26,15 @@ __all__ = [
     "skin_layout",
     "register_skin_layout",
     "registered_skin_layout",
+    "lbs_joint_major",
     "lbs_sparse",
+    "skin_values",
     "lbs_dense",
 ]
 
-# Sparse products over B > 8 poses are faster in chunks of 8 (the (V, 3B) result stays in
-# cache): measured 18k vs 10k meshes/s at B=32 on 2 CPU cores (benchmarks/forward.py).
+# Sparse products run over chunks of 8 poses: the CPU product (MKL, torch 2.13) is fastest per
+# column at 24 columns and 1.5x, then 6x slower per column past 26 and 32 (single thread:
+# 28 us per column at 24, 36 at 30, 115 at 36).
 _POSE_CHUNK = 8
 
 
@@ -104,13 +107,16 @@ def skin_layout(vertex: torch.Tensor, joint: torch.Tensor, num_vertices: int, nu
     x_row = vertex.repeat_interleave(4)
     x_col = (4 * joint[:, None] + four).reshape(-1)
     perm = torch.argsort(x_col * num_vertices + x_row)
+    # X's indices in int32: the CPU sparse product (MKL) converts int64 ones on every call
+    # (0.07 ms of a 0.3 ms batch-1 product); X has ~4 * 61k entries, far below 2^31.
+    i32 = torch.int32
     return SkinLayout(
         vertex=vertex,
         joint=joint,
-        x_crow=_crow(x_row, num_vertices),
-        x_col=x_col,
-        xt_crow=_crow(x_col, 4 * num_joints),
-        xt_col=x_row[perm],
+        x_crow=_crow(x_row, num_vertices).to(i32),
+        x_col=x_col.to(i32),
+        xt_crow=_crow(x_col, 4 * num_joints).to(i32),
+        xt_col=x_row[perm].to(i32),
         xt_perm=perm,
         w_crow=_crow(vertex, num_vertices),
         num_vertices=num_vertices,
@@ -135,21 +141,14 @@ def registered_skin_layout(module: nn.Module) -> SkinLayout:
     return SkinLayout(**fields, num_vertices=v, num_joints=j)
 
 
-def _x_values(rest: torch.Tensor, weight: torch.Tensor, layout: SkinLayout) -> torch.Tensor:
-    """(nnz * 4,) values of X for one rest mesh (V, 3)."""
-    vh = torch.cat([rest, rest.new_ones(rest.shape[0], 1)], dim=1)
-    return (weight[:, None] * vh[layout.vertex]).reshape(-1)
+def skin_values(rest: torch.Tensor, weight: torch.Tensor, layout: SkinLayout) -> torch.Tensor:
+    """Values (..., 4 nnz) of X for rest meshes (..., V, 3): ``w_e [v_i; 1]`` per influence e.
 
-
-def _stack(mats: torch.Tensor) -> torch.Tensor:
-    """(B, J, 3, 4) -> (4J, 3B)."""
-    b, j = mats.shape[:2]
-    return mats.permute(1, 3, 0, 2).reshape(4 * j, 3 * b)
-
-
-def _unstack(a: torch.Tensor, b: int) -> torch.Tensor:
-    """(4J, 3B) -> (B, J, 3, 4)."""
-    return a.reshape(-1, 4, b, 3).permute(2, 0, 3, 1)
+    They depend on the rest mesh only, so a prepared identity keeps them and posing it again
+    skips this gather (0.3-0.8 ms of a 2 ms batch-1 pose; ``benchmarks/forward.py --profile``).
+    """
+    w = weight[:, None].expand(*rest.shape[:-2], -1, 1)
+    return torch.cat([rest.index_select(-2, layout.vertex) * w, w], dim=-1).flatten(-2)
 
 
 def _groups(n_rest: int, n_pose: int) -> list[tuple[int, slice]]:
@@ -160,46 +159,72 @@ def _groups(n_rest: int, n_pose: int) -> list[tuple[int, slice]]:
 
 
 class _SparseSkin(torch.autograd.Function):
+    """X @ A per pose chunk, A (4J, 3B) from joint-major ``mats`` (J, 4, 3, B)."""
+
     @staticmethod
-    def forward(ctx, rest, mats, weight, layout):  # noqa: D102
+    def forward(ctx, rest, mats, weight, layout, values):  # noqa: D102
         v, j = layout.num_vertices, layout.num_joints
-        out = rest.new_empty(mats.shape[0], v, 3)
+        b = mats.shape[3]
+        a = mats.transpose(2, 3).reshape(4 * j, 3 * b)
+        # The products land in a vertex-major (V, B, 3) buffer; the result is its (B, V, 3)
+        # view. Writing them pose-major instead costs a strided copy as long as the product
+        # itself (0.39 vs 0.55 ms per chunk of 8). beta = 0 never reads the buffer (MKL), so
+        # it starts empty on the CPU; zeroed elsewhere, where that is not promised.
+        out = rest.new_empty(v, 3 * b) if rest.device.type == "cpu" else rest.new_zeros(v, 3 * b)
         x = None
-        for r, sl in _groups(rest.shape[0], mats.shape[0]):
+        for r, sl in _groups(rest.shape[0], b):
             if x is None or rest.shape[0] > 1:
-                x = csr(layout.x_crow, layout.x_col, _x_values(rest[r], weight, layout), (v, 4 * j))
-            m = mats[sl]
-            out[sl] = (x @ _stack(m)).view(v, m.shape[0], 3).transpose(0, 1)
+                vals = skin_values(rest[r], weight, layout) if values is None else values[r]
+                x = csr(layout.x_crow, layout.x_col, vals, (v, 4 * j))
+            cols = out[:, 3 * sl.start : 3 * sl.stop]
+            torch.addmm(cols, x, a[:, 3 * sl.start : 3 * sl.stop], beta=0, out=cols)
         ctx.save_for_backward(rest, mats, weight)
         ctx.layout = layout
-        return out
+        return out.view(v, b, 3).transpose(0, 1)
 
     @staticmethod
     def backward(ctx, grad):  # noqa: D102
         rest, mats, weight = ctx.saved_tensors
         layout: SkinLayout = ctx.layout
         v, j = layout.num_vertices, layout.num_joints
-        grad = grad.contiguous()
+        b = mats.shape[3]
         grad_rest = grad_mats = None
         if ctx.needs_input_grad[1]:
-            grad_mats = torch.empty_like(mats)
-            for r, sl in _groups(rest.shape[0], mats.shape[0]):
-                vals = _x_values(rest[r], weight, layout)[layout.xt_perm]
+            grad_vm = grad.transpose(0, 1).reshape(v, 3 * b)  # vertex-major, as the forward's buffer
+            grad_a = grad.new_empty(4 * j, 3 * b)
+            for r, sl in _groups(rest.shape[0], b):
+                vals = skin_values(rest[r], weight, layout)[layout.xt_perm]
                 xt = csr(layout.xt_crow, layout.xt_col, vals, (4 * j, v))
-                g = grad[sl].transpose(0, 1).reshape(v, -1)
-                grad_mats[sl] = _unstack(xt @ g, g.shape[1] // 3)
+                grad_a[:, 3 * sl.start : 3 * sl.stop] = xt @ grad_vm[:, 3 * sl.start : 3 * sl.stop]
+            grad_mats = grad_a.view(j, 4, b, 3).transpose(2, 3)
         if ctx.needs_input_grad[0]:
             # d v'_i / d v_i = sum_k w_ik R_k: blend the rotations with the sparse weights.
             w = csr(layout.w_crow, layout.joint, weight, (v, j))
-            b = mats.shape[0]
-            rot = mats[..., :3].permute(1, 0, 2, 3).reshape(j, 9 * b)
-            blended = (w @ rot).view(v, b, 3, 3)
-            per_pose = torch.einsum("vbrc,bvr->bvc", blended, grad)
+            rot = mats[:, :3].transpose(2, 3).reshape(j, 9 * b)
+            blended = (w @ rot).view(v, 3, b, 3)  # [v, col, b, row]
+            per_pose = torch.einsum("vcbr,bvr->bvc", blended, grad)
             grad_rest = per_pose.sum(0, keepdim=True) if rest.shape[0] == 1 else per_pose
-        return grad_rest, grad_mats, None, None
+        return grad_rest, grad_mats, None, None, None
 
 
-def lbs_sparse(rest: torch.Tensor, mats: torch.Tensor, weight: torch.Tensor, layout: SkinLayout) -> torch.Tensor:
+def lbs_joint_major(
+    rest: torch.Tensor,
+    mats: torch.Tensor,
+    weight: torch.Tensor,
+    layout: SkinLayout,
+    values: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """:func:`lbs_sparse` with joint-major transforms (J, 4, 3, B) (``geometry.kinematics``)."""
+    return _SparseSkin.apply(rest, mats, weight, layout, values)
+
+
+def lbs_sparse(
+    rest: torch.Tensor,
+    mats: torch.Tensor,
+    weight: torch.Tensor,
+    layout: SkinLayout,
+    values: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Skin rest meshes with sparse weights.
 
     Args:
@@ -207,11 +232,14 @@ def lbs_sparse(rest: torch.Tensor, mats: torch.Tensor, weight: torch.Tensor, lay
         mats: (B, J, 3, 4) skinning transforms [R_k | t_k] = G_k T_k^-1.
         weight: (nnz,) influence weights in ``layout`` order, same dtype as ``rest``.
         layout: the sparse structure from :func:`skin_layout`.
+        values: ``skin_values(rest, weight, layout)`` computed earlier, or None to compute
+            them here. Gradients reach ``rest`` either way (through the explicit backward),
+            so they must be exactly those values.
 
     Returns:
         (B, V, 3) skinned vertices.
     """
-    return _SparseSkin.apply(rest, mats, weight, layout)
+    return _SparseSkin.apply(rest, mats.permute(1, 3, 2, 0), weight, layout, values)
 
 
 def lbs_dense(rest: torch.Tensor, mats: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
