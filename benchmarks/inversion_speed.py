@@ -71,6 +71,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float32")
+    parser.add_argument(
+        "--clock",
+        choices=["wall", "cpu"],
+        default="wall",
+        help="cpu: process CPU time (with --threads 1, a load-independent proxy on a shared machine)",
+    )
     parser.add_argument("--baseline", type=Path, help="path of an older inversion.py to compare with")
     parser.add_argument("--profile", action="store_true", help="torch.profiler table per preset (new code)")
     args = parser.parse_args()
@@ -78,7 +84,10 @@ def main() -> None:
     dtype = getattr(torch, args.dtype)
     layer = BodyLayer.from_anny().to(args.device, dtype)
     old = load_baseline(args.baseline) if args.baseline else None
-    print(f"threads {args.threads}, {args.device}, {args.dtype}, median of {args.reps} interleaved calls")
+    clock = time.perf_counter if args.clock == "wall" else time.process_time
+    print(
+        f"threads {args.threads}, {args.device}, {args.dtype}, {args.clock} clock, median of {args.reps} interleaved calls"
+    )
     print("| batch | preset | new frames/s | new mean / max mm | old frames/s | old mean / max mm | new/old |")
     print("|---:|---|---:|---|---:|---|---:|")
     for batch in args.batch:
@@ -96,11 +105,11 @@ def main() -> None:
                     for k, inv in runs.items():
                         if args.device != "cpu":
                             torch.cuda.synchronize()
-                        t0 = time.perf_counter()
+                        t0 = clock()
                         inv.invert(target, prepared)
                         if args.device != "cpu":
                             torch.cuda.synchronize()
-                        times[k].append(time.perf_counter() - t0)
+                        times[k].append(clock() - t0)
             fps = {k: batch / statistics.median(v) for k, v in times.items()}
             err = {k: error_mm(layer, prepared, target, r) for k, r in results.items()}
             cells = [f"{fps['new']:,.0f}", f"{err['new'][0]:.3f} / {err['new'][1]:.2f}"]
