@@ -85,9 +85,8 @@ def main() -> None:
     layer = BodyLayer.from_anny().to(args.device, dtype)
     old = load_baseline(args.baseline) if args.baseline else None
     clock = time.perf_counter if args.clock == "wall" else time.process_time
-    print(
-        f"threads {args.threads}, {args.device}, {args.dtype}, {args.clock} clock, median of {args.reps} interleaved calls"
-    )
+    setup = f"threads {args.threads}, {args.device}, {args.dtype}, {args.clock} clock"
+    print(f"{setup}, median of {args.reps} interleaved calls")
     print("| batch | preset | new frames/s | new mean / max mm | old frames/s | old mean / max mm | new/old |")
     print("|---:|---|---:|---|---:|---|---:|")
     for batch in args.batch:
@@ -124,7 +123,8 @@ def main() -> None:
 
 
 def profile(inverter, target, prepared) -> None:
-    from torch.profiler import ProfilerActivity, profile as torch_profile, record_function
+    from torch.profiler import ProfilerActivity, record_function
+    from torch.profiler import profile as torch_profile
 
     with torch.no_grad(), torch_profile(activities=[ProfilerActivity.CPU]) as prof:
         for _ in range(5):

@@ -35,7 +35,7 @@ from torch import nn
 from .._checks import check_finite, check_like, check_shape
 from ..body import BodyLayer, PreparedIdentity
 from ..geometry.kinematics import forward_kinematics
-from ..geometry.procrustes import newton_schulz, polar_svd
+from ..geometry.procrustes import polar_svd
 from ..geometry.rotations import matrix_to_axis_angle, matrix_to_rot6d, rot6d_to_matrix
 from ..geometry.skinning import lbs_sparse, skin_layout
 from ..geometry.sparse import crow_indices, csr
