@@ -85,12 +85,7 @@ class GaussNewtonData:
             a non-empty subtree part.
         entry_pair, entry_infl: (Q,) which influence contributes to which pair.
         pair_weight: (P,) sum of the pair's influence weights.
-        cross_a, cross_b: (C,) pairs of the same vertex with slot(a) <= slot(b): each such
-            couple contributes to the (slot(a), slot(b)) block of J^T J.
-        cross_block: (C,) which of the non-zero joint blocks the couple adds to.
-        block_upper, block_lower: (K2,) flat positions, in the (1 + S) x (1 + S) grid of 3x3
-            blocks of J^T J (block 0: the translation), of each non-zero joint block
-            (row <= col) and of its transpose.
+        pair_flat: (P,) vertex position * K + slot: the pair's row in a dense (N, K) grid.
     """
 
     verts: torch.Tensor
@@ -103,11 +98,7 @@ class GaussNewtonData:
     entry_pair: torch.Tensor
     entry_infl: torch.Tensor
     pair_weight: torch.Tensor
-    cross_a: torch.Tensor
-    cross_b: torch.Tensor
-    cross_block: torch.Tensor
-    block_upper: torch.Tensor
-    block_lower: torch.Tensor
+    pair_flat: torch.Tensor
 
 
 def gauss_newton_data(layer: BodyLayer, num_samples: int, seed: int = 0) -> GaussNewtonData:
@@ -142,65 +133,43 @@ def gauss_newton_data(layer: BodyLayer, num_samples: int, seed: int = 0) -> Gaus
     pairs = torch.tensor(list(pair_id.keys()), dtype=torch.long)
     entry_pair_t, entry_infl_t = torch.tensor(entry_pair), torch.tensor(entry_infl)
     pair_weight = torch.zeros(len(pair_id), dtype=iw.dtype).index_add_(0, entry_pair_t, iw[entry_infl_t])
-    cross = _cross_pairs(pairs[:, 0], pairs[:, 1], joints.numel())
+    flat = pairs[:, 0] * joints.numel() + pairs[:, 1]
     return GaussNewtonData(
-        verts, joints, iv, ij, iw, pairs[:, 0], pairs[:, 1], entry_pair_t, entry_infl_t, pair_weight, *cross
+        verts, joints, iv, ij, iw, pairs[:, 0], pairs[:, 1], entry_pair_t, entry_infl_t, pair_weight, flat
     )
-
-
-def _cross_pairs(pair_vertex: torch.Tensor, pair_slot: torch.Tensor, num_slots: int) -> tuple[torch.Tensor, ...]:
-    """Couples of pairs on one vertex (slot(a) <= slot(b)) and the J^T J blocks they fill."""
-    order = torch.argsort(pair_vertex * num_slots + pair_slot)
-    vertex, slot = pair_vertex[order], pair_slot[order]
-    count = torch.bincount(vertex)
-    start = torch.cumsum(count, 0) - count
-    # All (i, j) with i <= j inside each vertex's run of pairs (runs are short: ~9 pairs).
-    lengths = count[vertex]
-    offset = torch.arange(vertex.numel()) - start[vertex]  # position of each pair in its run
-    reps = lengths - offset  # pairs at or after it in the run
-    a = torch.repeat_interleave(torch.arange(vertex.numel()), reps)
-    first = torch.repeat_interleave(torch.cumsum(reps, 0) - reps, reps)
-    b = a + torch.arange(a.numel()) - first
-    block_key = slot[a] * num_slots + slot[b]
-    keys, cross_block = torch.unique(block_key, return_inverse=True)
-    row, col = keys // num_slots + 1, keys % num_slots + 1  # grid block 0 is the translation
-    grid = num_slots + 1
-    return order[a], order[b], cross_block, row * grid + col, col * grid + row
 
 
 def normal_equations(
     d: dict[str, torch.Tensor], q: torch.Tensor, residual: torch.Tensor, num_joints: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """J^T J (B, 3 + 3S, 3 + 3S) and J^T r (B, 3 + 3S, 1) of :func:`articulated_jacobian`, from its sparsity.
+    """J^T J (B, 3 + 3S, 3 + 3S) and J^T r (B, 3 + 3S, 1) of :func:`articulated_jacobian`, from its structure.
 
     With J's blocks I (translation) and -[q_ik]_x (joint k, where its subtree skins vertex i):
-    J_t^T J_t = N I, J_t^T J_k = -[sum_i q_ik]_x, J_k^T J_l = sum_i (q_ik . q_il) I - q_il q_ik^T,
-    J_t^T r = sum_i r_i, J_k^T r = sum_i q_ik x r_i. A vertex has ~9 (vertex, ancestor) pairs out
-    of the S = 62 joints, so summing over couples of pairs on one vertex does ~1/200 of the
-    arithmetic of the dense product (measured: refined preset, benchmarks/inversion_speed.py).
+    J_t^T J_t = N I, J_k^T J_t = [sum_i q_ik]_x, J_k^T J_l = sum_i (q_ik . q_il) I - q_il q_ik^T,
+    J_t^T r = sum_i r_i, J_k^T r = sum_i q_ik x r_i. The joint blocks come from one product
+    Q^T Q of the moment arms laid out densely, Q (N, 3S): a third of the rows of J and no
+    skew blocks (measured, batch 32, 800 vertices, one thread: 72 ms, where summing over
+    couples of pairs on one vertex took 131 ms and the dense J^T J ~3x the product's work).
 
     Args:
         d: the fields of :class:`GaussNewtonData` on the solve's device.
         q: (B, P, 3) moment arms of the pairs; residual: (B, N, 3) target minus prediction.
         num_joints: S.
     """
-    b, grid = q.shape[0], num_joints + 1
-    qa, qb = q[:, d["cross_a"]], q[:, d["cross_b"]]
-    outer = q.new_zeros(b, d["block_upper"].numel(), 3, 3)
-    outer.index_add_(1, d["cross_block"], qb[..., :, None] * qa[..., None, :])  # sum q_il q_ik^T
+    b, n = residual.shape[:2]
+    grid = num_joints + 1
+    dense = q.new_zeros(b, n * num_joints, 3).index_copy_(1, d["pair_flat"], q).view(b, n, 3 * num_joints)
+    # outer[:, k, l] = sum_i q_il q_ik^T: Q^T Q holds sum_i q_ik q_il^T at block (k, l).
+    outer = (dense.transpose(1, 2) @ dense).view(b, num_joints, 3, num_joints, 3).permute(0, 1, 3, 4, 2)
     eye = torch.eye(3, dtype=q.dtype, device=q.device)
-    joint = outer.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None] * eye - outer
     moment = q.new_zeros(b, num_joints, 3).index_add_(1, d["pair_slot"], q)
-    cross_t = skew(moment)  # J_k^T J_t = [sum_i q_ik]_x
-    blocks = q.new_zeros(b, grid * grid, 3, 3)
-    blocks[:, 0] = residual.shape[1] * eye
-    slots = torch.arange(1, grid, device=q.device)
-    blocks[:, slots * grid] = cross_t
-    blocks[:, slots] = cross_t.transpose(-1, -2)
-    blocks[:, d["block_lower"]] = joint.transpose(-1, -2)
-    blocks[:, d["block_upper"]] = joint
-    jtj = blocks.view(b, grid, grid, 3, 3).transpose(2, 3).reshape(b, 3 * grid, 3 * grid)
-    r = residual[:, d["pair_vertex"]]
+    blocks = q.new_zeros(b, grid, grid, 3, 3)
+    blocks[:, 0, 0] = n * eye
+    blocks[:, 1:, 0] = skew(moment)
+    blocks[:, 0, 1:] = skew(moment).transpose(-1, -2)
+    blocks[:, 1:, 1:] = outer.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None] * eye - outer
+    jtj = blocks.transpose(2, 3).reshape(b, 3 * grid, 3 * grid)
+    r = residual.index_select(1, d["pair_vertex"])
     rhs_joint = q.new_zeros(b, num_joints, 3).index_add_(1, d["pair_slot"], torch.linalg.cross(q, r, dim=-1))
     rhs = torch.cat([residual.sum(1, keepdim=True), rhs_joint], 1).reshape(b, 3 * grid, 1)
     return jtj, rhs

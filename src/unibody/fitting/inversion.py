@@ -124,7 +124,7 @@ class InversionConfig:
 PRESETS: dict[str, InversionConfig] = {
     "fast": InversionConfig(method="skeleton"),
     "analytic": InversionConfig(),
-    "refined": InversionConfig(gauss_newton_steps=3),
+    "refined": InversionConfig(body_passes=1, full_passes=0, gauss_newton_steps=3, gauss_newton_samples=600),
     "svd": InversionConfig(orthogonalization="svd"),
     "accurate": InversionConfig(method="autograd", init="analytic", steps=100, region_weights=(1.0, 4.0, 2.0, 2.0)),
 }
