@@ -192,3 +192,43 @@ def test_compiled_posing_agrees_with_eager():
         layer.compile_posing(False)
         assert (compiled.vertices - eager.vertices).abs().max() < 1e-5
         assert (compiled.transforms - eager.transforms).abs().max() < 1e-5
+
+
+@pytest.fixture(scope="module")
+def anny_layer32():
+    return BodyLayer.from_anny()
+
+
+def test_warp_kernel_agrees_with_the_torch_path(anny_layer32):
+    """float32 without gradients takes the Warp kernel; with a gradient the torch path: the same body."""
+    from unibody.geometry._warp import posing
+
+    layer = anny_layer32
+    assert posing.available()
+    gen = torch.Generator().manual_seed(12)
+    for b, bi in ((1, 1), (3, 1), (3, 3), (0, 1)):
+        prepared = layer.prepare_identity(torch.rand(bi, 6, generator=gen))
+        aa = 0.6 * torch.randn(b, 77, 3, generator=gen)
+        transl = torch.randn(b, 3, generator=gen)
+        for pose in (aa, axis_angle_to_matrix(aa), matrix_to_rot6d(axis_angle_to_matrix(aa))):
+            for absolute in (False, True):
+                with torch.no_grad():
+                    fast = layer.pose(prepared, pose, transl=transl, absolute=absolute)
+                ref = layer.pose(prepared, pose.clone().requires_grad_(True), transl=transl, absolute=absolute)
+                assert fast.vertices.shape == (b, layer.num_vertices, 3)
+                if b:
+                    assert (fast.transforms - ref.transforms.detach()).abs().max() < 5e-6
+                    assert (fast.vertices - ref.vertices.detach()).abs().max() < 5e-6
+
+
+def test_warp_path_leaves_huge_angles_to_torch(anny_layer32):
+    """Past MAX_ANGLE the kernel is not trusted: the result is exactly the torch path's."""
+    from unibody.geometry._warp.posing import MAX_ANGLE
+
+    layer = anny_layer32
+    prepared = layer.prepare_identity(torch.full((1, 6), 0.5))
+    pose = 0.3 * torch.randn(2, 77, 3, generator=torch.Generator().manual_seed(13))
+    pose[1, 5] = torch.tensor([2 * MAX_ANGLE, 0.0, 0.0])
+    with torch.no_grad():
+        fast = layer.pose(prepared, pose).vertices
+    assert torch.equal(fast, layer.pose(prepared, pose.clone().requires_grad_(True)).vertices.detach())

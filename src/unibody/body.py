@@ -71,11 +71,11 @@ def _local_math(pose: torch.Tensor, kind: int, absolute: bool, left: torch.Tenso
     """Checked pose (B, 77, ...) of ``kind`` 0 axis-angle, 1 matrices, 2 6D -> joint-major (J, 3, 3, B).
 
     Absolute local rotations, Root (row 0) = I; T-pose-relative ones are turned absolute with
-    the joint-major factors ``left`` = O_p(j)^T and ``right`` = O_j.
+    the factors ``left`` = O_p(j)^T and ``right`` = O_j, each (77, 3, 3).
     """
     rot = joint_major((axis_angle_to_matrix, lambda r: r, rot6d_to_matrix)[kind](pose))
     if not absolute:
-        rot = compose(left, compose(rot, right))
+        rot = compose(joint_major(left[None]), compose(rot, joint_major(right[None])))
     eye = torch.eye(3, dtype=rot.dtype, device=rot.device)[None, ..., None].expand(1, 3, 3, rot.shape[3])
     return torch.cat([eye, rot], dim=0)
 
@@ -225,10 +225,12 @@ class BodyLayer(nn.Module):
         parents = torch.tensor([max(p, 0) for p in rig.tree.parents])
         self.register_buffer("parents", parents, persistent=False)
         self.register_buffer("tpose_orient", rig.tpose_orient, persistent=False)
-        # R_abs,j = O_p(j)^T R_rel,j O_j: both factors per posed joint, joint-major, gathered once.
-        orient = rig.tpose_orient[None]
-        self.register_buffer("_tpose_left", joint_major(orient[:, parents[1:]].transpose(-1, -2)), persistent=False)
-        self.register_buffer("_tpose_right", joint_major(orient[:, 1:]), persistent=False)
+        # R_abs,j = O_p(j)^T R_rel,j O_j: both factors per posed joint, gathered once; int32
+        # parents for the Warp kernel.
+        orient = rig.tpose_orient
+        self.register_buffer("_tpose_left", orient[parents[1:]].transpose(-1, -2).contiguous(), persistent=False)
+        self.register_buffer("_tpose_right", orient[1:].contiguous(), persistent=False)
+        self.register_buffer("_parents32", parents.to(torch.int32), persistent=False)
         self.register_buffer("faces", rig.faces, persistent=False)
         self.register_buffer("skin_weight", rig.skin_weight, persistent=False)
         register_skin_layout(self, skin_layout(rig.skin_vertex, rig.skin_joint, rig.num_vertices, rig.num_joints))
@@ -541,14 +543,56 @@ class BodyLayer(nn.Module):
             )
             world = homogeneous(g_rot, g_pos)
         else:
-            math = _compiled_pose_math() if self._compiled else _pose_math
-            world, mats = math(
-                self.rig_tree, pose, kind, absolute, left, right, p.offsets, transl, p.rest_rotations, p.rest_joints
-            )
+            dense = self._warp_pose(pose, kind, absolute, p, transl)
+            if dense is None:
+                math = _compiled_pose_math() if self._compiled else _pose_math
+                dense = math(
+                    self.rig_tree, pose, kind, absolute, left, right, p.offsets, transl, p.rest_rotations, p.rest_joints
+                )
+            world, mats = dense
             vertices = self._skin(p, mats)
         if check and b:
             self._check_overflow(world, vertices, mats, p.rest_vertices)
         return BodyOutput(vertices, world[..., :3, 3], world, p.rest_vertices.expand(b, -1, -1))
+
+    def _warp_pose(
+        self, pose: torch.Tensor, kind: int, absolute: bool, p: PreparedIdentity, transl: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The dense part of posing through the Warp kernel (``geometry/_warp/posing.py``), or None.
+
+        None (take the torch path) when gradients may be needed, for dtypes other than float32,
+        in compiled mode, for axis-angles beyond its :data:`~unibody.geometry._warp.posing.MAX_ANGLE`,
+        and when Warp cannot run here (then once with a warning).
+        """
+        from .geometry._warp import posing
+
+        if pose.dtype != torch.float32 or self._compiled or pose.device.type not in ("cpu", "cuda"):
+            return None
+        tensors = (pose, transl, p.offsets, p.rest_rotations, p.rest_joints)
+        if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+            return None
+        if kind == 2:
+            pose, kind = rot6d_to_matrix(pose), 1
+        elif kind == 0 and pose.shape[0] and not bool(pose.abs().amax() <= posing.MAX_ANGLE):
+            return None
+        if not posing.available():
+            return None
+        try:
+            return posing.pose_transforms(
+                self._parents32,
+                pose,
+                kind == 1,
+                not absolute,
+                self._tpose_left,
+                self._tpose_right,
+                p.offsets,
+                transl,
+                p.rest_rotations,
+                p.rest_joints,
+            )
+        except Exception as exc:  # a Warp that cannot compile or launch here: torch from now on
+            posing.disable(f"{type(exc).__name__}: {exc}")
+            return None
 
     def _skin(self, prepared: PreparedIdentity, mats: torch.Tensor) -> torch.Tensor:
         """LBS of the prepared rest mesh by joint-major skinning transforms (J, 4, 3, B)."""
