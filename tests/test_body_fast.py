@@ -139,7 +139,8 @@ def test_unchecked_path_still_checks_shapes_and_dtypes(anny_layer64):
 def test_skin_values_are_a_cache_of_the_own_rest_mesh(anny_layer64):
     layer = anny_layer64
     gen = torch.Generator().manual_seed(7)
-    prepared = layer.prepare_identity(torch.rand(2, 6, generator=gen, dtype=torch.float64))
+    assert layer.prepare_identity(torch.rand(2, 6, generator=gen, dtype=torch.float64)).skin_values is None
+    prepared = layer.prepare_identity(torch.rand(1, 6, generator=gen, dtype=torch.float64))
     assert prepared.skin_values is not None
     pose = 0.3 * torch.randn(2, 77, 3, generator=gen, dtype=torch.float64)
     cached = layer.pose(prepared, pose).vertices

@@ -129,8 +129,9 @@ class PreparedIdentity:
         offsets: (Bi, J, 3) m, each joint's position in its parent's rest frame.
         skin_values: (Bi, 4 nnz) the rest mesh's sparse skinning matrix values
             (:func:`~unibody.geometry.skinning.skin_values`), which :meth:`BodyLayer.prepare_rest`
-            keeps so that posing the identity again skips rebuilding them (1 MB per identity in
-            float32; 0.3-0.8 ms of a batch-1 pose). Not a constructor argument: an identity
+            keeps for a single identity so that posing it again skips rebuilding them (1 MB in
+            float32; 0.3-0.8 ms of a batch-1 pose). None for Bi > 1: those are posed by blending
+            the transforms, which needs no per-identity values. Not a constructor argument: an identity
             built or ``dataclasses.replace``-d by hand has None, and posing rebuilds them from
             its own ``rest_vertices``, so they can never belong to another mesh.
     """
@@ -320,14 +321,17 @@ class BodyLayer(nn.Module):
         rot, pos = self.skeleton.fit(rest_vertices)
         rp_t = rot[:, self.parents].transpose(-1, -2)
         offsets = (rp_t @ (pos - pos[:, self.parents])[..., None]).squeeze(-1)
-        values = skin_values(rest_vertices, self.skin_weight, registered_skin_layout(self))
-        return PreparedIdentity(rest_vertices, rot, pos, offsets)._keep(values)
+        prepared = PreparedIdentity(rest_vertices, rot, pos, offsets)
+        if rest_vertices.shape[0] != 1:  # many identities are posed by blending (geometry.skinning)
+            return prepared
+        return prepared._keep(skin_values(rest_vertices, self.skin_weight, registered_skin_layout(self)))
 
     @staticmethod
     def _check_extent(rest: torch.Tensor) -> None:
         """ValueError unless every mesh's bounding-box diagonal lies in :data:`REST_EXTENT_M`."""
         with torch.no_grad():
-            diag = torch.linalg.vector_norm(rest.amax(1) - rest.amin(1), dim=-1)
+            low, high = torch.aminmax(rest, dim=1)  # one pass
+            diag = torch.linalg.vector_norm(high - low, dim=-1)
             lo, hi = REST_EXTENT_M
             bad = ~((diag >= lo) & (diag <= hi))
             if not bool(bad.any()):
@@ -612,7 +616,8 @@ class BodyLayer(nn.Module):
         with torch.no_grad():
             big = torch.finfo(world.dtype).max
             if mats is not None:
-                bound = 4 * mats.abs().amax() * rest.abs().amax().clamp_min(1) + world.abs().amax()
+                size = torch.stack([t.abs().amax() for t in (mats, world)] + [x.abs() for x in torch.aminmax(rest)])
+                bound = 4 * size[0] * size[2:].amax().clamp_min(1) + size[1]
                 if bool(bound < big):  # False for NaN
                     return
             if torch.isfinite(vertices).all() and torch.isfinite(world).all():

@@ -158,6 +158,30 @@ def _groups(n_rest: int, n_pose: int) -> list[tuple[int, slice]]:
     return [(b, slice(b, b + 1)) for b in range(n_pose)]
 
 
+def _blend_apply(rest: torch.Tensor, mats: torch.Tensor, weight: torch.Tensor, layout: SkinLayout) -> torch.Tensor:
+    """LBS of one rest mesh per pose (B, V, 3) as blended transforms: (V, 3, B), batch innermost.
+
+    ``W @ M`` (the (V, J) weights times the (J, 12 B) transforms, in 24-column products) gives
+    every vertex its blended [R | t]; three fused multiply-adds apply it. No per-identity
+    skinning matrix is built: 1.8x faster than one sparse product per identity at B = 32 on one
+    core (22 vs 39 ms), their values alone being a gather of 4 x 61k entries per mesh. It is
+    memory-bound: the blended transforms are 12 floats per vertex and pose.
+    """
+    v, j = layout.num_vertices, layout.num_joints
+    b = mats.shape[3]
+    w = csr(layout.w_crow.int(), layout.joint.int(), weight, (v, j))
+    m = mats.reshape(j, 12 * b)
+    blend = rest.new_empty(v, 12 * b) if rest.device.type == "cpu" else rest.new_zeros(v, 12 * b)
+    for s in range(0, 12 * b, 3 * _POSE_CHUNK):
+        cols = blend[:, s : s + 3 * _POSE_CHUNK]
+        torch.addmm(cols, w, m[:, s : s + 3 * _POSE_CHUNK], beta=0, out=cols)
+    blend = blend.view(v, 4, 3, b)  # [vertex, column, row, pose]
+    rt = rest.permute(1, 2, 0).contiguous()[:, :, None]  # (V, 3, 1, B)
+    out = torch.addcmul(blend[:, 3], blend[:, 0], rt[:, 0])
+    out = torch.addcmul(out, blend[:, 1], rt[:, 1])
+    return torch.addcmul(out, blend[:, 2], rt[:, 2])
+
+
 class _SparseSkin(torch.autograd.Function):
     """X @ A per pose chunk, A (4J, 3B) from joint-major ``mats`` (J, 4, 3, B)."""
 
@@ -171,6 +195,11 @@ class _SparseSkin(torch.autograd.Function):
         # itself (0.39 vs 0.55 ms per chunk of 8). beta = 0 never reads the buffer (MKL), so
         # it starts empty on the CPU; zeroed elsewhere, where that is not promised.
         out = rest.new_empty(v, 3 * b) if rest.device.type == "cpu" else rest.new_zeros(v, 3 * b)
+        ctx.save_for_backward(rest, mats, weight)
+        ctx.layout = layout
+        if rest.shape[0] > 1 and values is None:
+            out.view(v, b, 3).copy_(_blend_apply(rest, mats, weight, layout).transpose(1, 2))
+            return out.view(v, b, 3).transpose(0, 1)
         x = None
         for r, sl in _groups(rest.shape[0], b):
             if x is None or rest.shape[0] > 1:
@@ -178,8 +207,6 @@ class _SparseSkin(torch.autograd.Function):
                 x = csr(layout.x_crow, layout.x_col, vals, (v, 4 * j))
             cols = out[:, 3 * sl.start : 3 * sl.stop]
             torch.addmm(cols, x, a[:, 3 * sl.start : 3 * sl.stop], beta=0, out=cols)
-        ctx.save_for_backward(rest, mats, weight)
-        ctx.layout = layout
         return out.view(v, b, 3).transpose(0, 1)
 
     @staticmethod
