@@ -48,6 +48,16 @@ def test_eleven_phenotypes_at_their_defaults_equal_the_six(anny6, anny11):
     assert torch.equal(anny11.default_params(), _with_defaults(anny6.default_params()))
 
 
+def test_layer_with_all_phenotypes_poses_the_same_bodies(anny_layer64):
+    from unibody import BodyLayer
+
+    layer = BodyLayer.from_anny(phenotypes="all", dtype=torch.float64)
+    assert layer.identity.param_names == ALL_PHENOTYPES
+    six = _phenotypes(2, seed=3)
+    pose = 0.3 * torch.randn(2, 77, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    assert (layer(six, pose).vertices - anny_layer64(six, pose).vertices).abs().max() < 1e-9
+
+
 def test_the_extra_phenotypes_change_the_body(anny11):
     eleven = _with_defaults(_phenotypes(1)).repeat(3, 1)
     eleven[1, ALL_PHENOTYPES.index("cupsize")] = 1.0

@@ -19,7 +19,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import torch
 from torch import nn
@@ -243,14 +243,20 @@ class BodyLayer(nn.Module):
         cls,
         *,
         local_changes: str | tuple[str, ...] = "none",
+        phenotypes: Literal["default", "all"] = "default",
         procedural: bool | ProceduralDefinition = False,
         dtype: torch.dtype = torch.float32,
     ) -> BodyLayer:
-        """The canonical rig with Anny as identity backend (offline, from the ``anny`` package)."""
+        """The canonical rig with Anny as identity backend (offline, from the ``anny`` package).
+
+        ``phenotypes="all"`` builds Anny with py-soma-x's eleven phenotypes (six given: the other
+        five at 0.5, as py-soma-x fills them); the default six-phenotype model gives the same
+        bodies at those defaults and is twice as fast (:class:`~unibody.identity.anny.AnnyIdentity`).
+        """
         from .identity.anny import AnnyIdentity
         from .topology import TopologyTransfer
 
-        identity = AnnyIdentity.create(local_changes=local_changes)
+        identity = AnnyIdentity.create(local_changes=local_changes, phenotypes=phenotypes)
         return cls(Rig.canonical(), identity, TopologyTransfer.from_anny(), procedural=procedural).to(dtype)
 
     @classmethod
