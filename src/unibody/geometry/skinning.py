@@ -151,10 +151,15 @@ def skin_values(rest: torch.Tensor, weight: torch.Tensor, layout: SkinLayout) ->
     return torch.cat([rest.index_select(-2, layout.vertex) * w, w], dim=-1).flatten(-2)
 
 
-def _groups(n_rest: int, n_pose: int) -> list[tuple[int, slice]]:
+def _chunk(device: torch.device) -> int:
+    """Poses per sparse product: :data:`_POSE_CHUNK` on the CPU; all of them on a GPU (no such cliff there)."""
+    return _POSE_CHUNK if device.type == "cpu" else 1 << 30
+
+
+def _groups(n_rest: int, n_pose: int, chunk: int = _POSE_CHUNK) -> list[tuple[int, slice]]:
     """(rest index, pose slice) pairs: one rest shared by chunks, or one rest per pose."""
     if n_rest == 1:
-        return [(0, slice(s, min(s + _POSE_CHUNK, n_pose))) for s in range(0, n_pose, _POSE_CHUNK)]
+        return [(0, slice(s, min(s + chunk, n_pose))) for s in range(0, n_pose, chunk)]
     return [(b, slice(b, b + 1)) for b in range(n_pose)]
 
 
@@ -172,9 +177,10 @@ def _blend_apply(rest: torch.Tensor, mats: torch.Tensor, weight: torch.Tensor, l
     w = csr(layout.w_crow.int(), layout.joint.int(), weight, (v, j))
     m = mats.reshape(j, 12 * b)
     blend = rest.new_empty(v, 12 * b) if rest.device.type == "cpu" else rest.new_zeros(v, 12 * b)
-    for s in range(0, 12 * b, 3 * _POSE_CHUNK):
-        cols = blend[:, s : s + 3 * _POSE_CHUNK]
-        torch.addmm(cols, w, m[:, s : s + 3 * _POSE_CHUNK], beta=0, out=cols)
+    step = 3 * _chunk(rest.device)
+    for s in range(0, 12 * b, step):
+        cols = blend[:, s : s + step]
+        torch.addmm(cols, w, m[:, s : s + step], beta=0, out=cols)
     blend = blend.view(v, 4, 3, b)  # [vertex, column, row, pose]
     rt = rest.permute(1, 2, 0).contiguous()[:, :, None]  # (V, 3, 1, B)
     out = torch.addcmul(blend[:, 3], blend[:, 0], rt[:, 0])
@@ -201,7 +207,7 @@ class _SparseSkin(torch.autograd.Function):
             out.view(v, b, 3).copy_(_blend_apply(rest, mats, weight, layout).transpose(1, 2))
             return out.view(v, b, 3).transpose(0, 1)
         x = None
-        for r, sl in _groups(rest.shape[0], b):
+        for r, sl in _groups(rest.shape[0], b, _chunk(rest.device)):
             if x is None or rest.shape[0] > 1:
                 vals = skin_values(rest[r], weight, layout) if values is None else values[r]
                 x = csr(layout.x_crow, layout.x_col, vals, (v, 4 * j))
@@ -219,7 +225,7 @@ class _SparseSkin(torch.autograd.Function):
         if ctx.needs_input_grad[1]:
             grad_vm = grad.transpose(0, 1).reshape(v, 3 * b)  # vertex-major, as the forward's buffer
             grad_a = grad.new_empty(4 * j, 3 * b)
-            for r, sl in _groups(rest.shape[0], b):
+            for r, sl in _groups(rest.shape[0], b, _chunk(rest.device)):
                 vals = skin_values(rest[r], weight, layout)[layout.xt_perm]
                 xt = csr(layout.xt_crow, layout.xt_col, vals, (4 * j, v))
                 grad_a[:, 3 * sl.start : 3 * sl.stop] = xt @ grad_vm[:, 3 * sl.start : 3 * sl.stop]
