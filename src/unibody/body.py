@@ -311,8 +311,11 @@ class BodyLayer(nn.Module):
         local = self.bind_local_rotations().expand(b, -1, -1, -1)
         return self.pose(prepared, local, transl=prepared.rest_joints[:, 1], absolute=True).vertices
 
-    def prepare_rest(self, rest_vertices: torch.Tensor) -> PreparedIdentity:
+    def prepare_rest(self, rest_vertices: torch.Tensor, *, _keep_skin: bool = True) -> PreparedIdentity:
         """Fit the skeleton to canonical rest meshes (B, V, 3), metres.
+
+        A single identity also keeps its skinning values (:attr:`PreparedIdentity.skin_values`),
+        so that posing it again is cheaper.
 
         Raises:
             TypeError: ``rest_vertices`` is not a tensor, or not of the layer's dtype and device.
@@ -328,7 +331,7 @@ class BodyLayer(nn.Module):
         rp_t = rot[:, self.parents].transpose(-1, -2)
         offsets = (rp_t @ (pos - pos[:, self.parents])[..., None]).squeeze(-1)
         prepared = PreparedIdentity(rest_vertices, rot, pos, offsets)
-        if rest_vertices.shape[0] != 1:  # many identities are posed by blending (geometry.skinning)
+        if rest_vertices.shape[0] != 1 or not _keep_skin:  # posed by blending (geometry.skinning)
             return prepared
         return prepared._keep(skin_values(rest_vertices, self.skin_weight, registered_skin_layout(self)))
 
@@ -357,7 +360,7 @@ class BodyLayer(nn.Module):
             f"rest_vertices: bounding-box diagonal {d:.4g} m at batch {b} is outside [{lo:g}, {hi:g}] m; {why}"
         )
 
-    def prepare_identity(self, params: torch.Tensor) -> PreparedIdentity:
+    def prepare_identity(self, params: torch.Tensor, *, _keep_skin: bool = True) -> PreparedIdentity:
         """Run the identity backend, the topology transfer and the skeleton fit once.
 
         Args:
@@ -369,7 +372,7 @@ class BodyLayer(nn.Module):
         rest = self.identity(params)
         if self.topology is not None:
             rest = self.topology(rest)
-        return self.prepare_rest(rest)
+        return self.prepare_rest(rest, _keep_skin=_keep_skin)
 
     @property
     def skinning(self) -> Skinning:
@@ -674,5 +677,10 @@ class BodyLayer(nn.Module):
     def forward(
         self, params: torch.Tensor, pose: torch.Tensor, *, transl: torch.Tensor | None = None, absolute: bool = False
     ) -> BodyOutput:
-        """Identity parameters (B or 1, K) and pose (B, 77, ...) -> BodyOutput (see :meth:`pose`)."""
-        return self.pose(self.prepare_identity(params), pose, transl=transl, absolute=absolute)
+        """Identity parameters (B or 1, K) and pose (B, 77, ...) -> BodyOutput (see :meth:`pose`).
+
+        The identity is used once, so it keeps no skinning values: its meshes are skinned by
+        blending (``geometry.skinning``), cheaper than building them for one use.
+        """
+        prepared = self.prepare_identity(params, _keep_skin=False)
+        return self.pose(prepared, pose, transl=transl, absolute=absolute)

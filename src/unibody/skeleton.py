@@ -50,8 +50,9 @@ class SkeletonTransfer(nn.Module):
         cols = torch.cat([rig.rbf_vertex, rig.skin_vertex.repeat_interleave(4)])
         vals = torch.cat([rig.rbf_weight, (rig.skin_weight[:, None] * c1[rig.skin_vertex]).reshape(-1)])
         order = torch.argsort(rows * rig.num_vertices + cols)
-        self.register_buffer("op_crow", _crow(rows[order], 5 * j), persistent=False)
-        self.register_buffer("op_col", cols[order], persistent=False)
+        # int32 indices: the CPU sparse product (MKL) would convert int64 ones on every call.
+        self.register_buffer("op_crow", _crow(rows[order], 5 * j).to(torch.int32), persistent=False)
+        self.register_buffer("op_col", cols[order].to(torch.int32), persistent=False)
         self.register_buffer("op_val", vals[order], persistent=False)
         # Constant per-joint sums over the bind mesh: sum_i w_ik c_i and sum_i w_ik.
         sums = torch.zeros(j, 4, dtype=c1.dtype).index_add_(
