@@ -108,6 +108,17 @@ def icosahedron() -> tuple[np.ndarray, np.ndarray]:
     return v / np.linalg.norm(v, axis=1, keepdims=True), f
 
 
+def fk_loop(parents, rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
+    """Independent FK reference: one joint at a time, 4x4 matrices; world transforms (B, J, 4, 4)."""
+    b, j = rot.shape[:2]
+    local = torch.zeros(b, j, 4, 4, dtype=rot.dtype)
+    local[..., :3, :3], local[..., :3, 3], local[..., 3, 3] = rot, trans, 1
+    world = [local[:, 0]]
+    for k in range(1, j):
+        world.append(world[parents[k]] @ local[:, k])
+    return torch.stack(world, 1)
+
+
 @pytest.fixture(scope="session")
 def small_rig() -> Rig:
     return chain_rig()

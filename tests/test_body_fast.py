@@ -9,22 +9,11 @@ import dataclasses
 import pytest
 import torch
 
-from conftest import chain_rig
+from conftest import chain_rig, fk_loop
 from unibody import BodyLayer
 from unibody.geometry.kinematics import KinematicTree, chain, compose, forward_kinematics, joint_major
 from unibody.geometry.rotations import axis_angle_to_matrix, matrix_to_rot6d
 from unibody.geometry.skinning import lbs_dense
-
-
-def _fk_loop(parents, rot, trans):
-    """Independent reference: one joint at a time, 4x4 matrices."""
-    b, j = rot.shape[:2]
-    local = torch.zeros(b, j, 4, 4, dtype=rot.dtype)
-    local[..., :3, :3], local[..., :3, 3], local[..., 3, 3] = rot, trans, 1
-    world = [local[:, 0]]
-    for k in range(1, j):
-        world.append(world[parents[k]] @ local[:, k])
-    return torch.stack(world, 1)
 
 
 @pytest.mark.parametrize(
@@ -43,7 +32,7 @@ def test_pointer_jumping_equals_joint_loop(parents):
     rot = axis_angle_to_matrix(torch.randn(b, j, 3, generator=gen, dtype=torch.float64))
     trans = torch.randn(b, j, 3, generator=gen, dtype=torch.float64)
     wr, wt = forward_kinematics(KinematicTree(parents), rot, trans)
-    ref = _fk_loop(parents, rot, trans)
+    ref = fk_loop(parents, rot, trans)
     assert (wr - ref[..., :3, :3]).abs().max() < 1e-12
     assert (wt - ref[..., :3, 3]).abs().max() < 1e-12
 
@@ -80,7 +69,7 @@ def _reference_pose(layer: BodyLayer, prepared, pose: torch.Tensor, transl: torc
     rot = torch.cat([torch.eye(3, dtype=pose.dtype).expand(b, 1, 3, 3), absolute], 1)
     trans = prepared.offsets.expand(b, -1, -1).clone()
     trans[:, 1] = transl
-    world = _fk_loop(parents, rot, trans)
+    world = fk_loop(parents, rot, trans)
     rest_inv = torch.linalg.inv(
         torch.cat(
             [

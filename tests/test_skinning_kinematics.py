@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from conftest import TOL
+from conftest import TOL, fk_loop
 from unibody.geometry.kinematics import forward_kinematics, relative_to_parent
 from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.geometry.skinning import lbs_dense, lbs_sparse, skin_layout
@@ -74,23 +74,12 @@ def test_lbs_gradcheck(small_rig):
         )
 
 
-def _fk_loop(parents, rot, trans):
-    """Independent reference: one joint at a time with 4x4 matrices."""
-    b, j = rot.shape[:2]
-    local = torch.zeros(b, j, 4, 4, dtype=rot.dtype)
-    local[..., :3, :3], local[..., :3, 3], local[..., 3, 3] = rot, trans, 1
-    world = [local[:, 0]]
-    for k in range(1, j):
-        world.append(world[parents[k]] @ local[:, k])
-    return torch.stack(world, 1)
-
-
 def test_fk_matches_joint_loop_and_inverts(rig):
     gen = torch.Generator().manual_seed(4)
     rot = axis_angle_to_matrix(0.5 * torch.randn(2, rig.num_joints, 3, generator=gen, dtype=torch.float64))
     trans = torch.randn(2, rig.num_joints, 3, generator=gen, dtype=torch.float64)
     wr, wt = forward_kinematics(rig.tree, rot, trans)
-    ref = _fk_loop(rig.tree.parents, rot, trans)
+    ref = fk_loop(rig.tree.parents, rot, trans)
     assert (wr - ref[..., :3, :3]).abs().max() < 1e-12
     assert (wt - ref[..., :3, 3]).abs().max() < 1e-12
     lr, lt = relative_to_parent(rig.tree, wr, wt)
