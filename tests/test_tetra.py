@@ -307,6 +307,77 @@ def test_apply_gradcheck():
     assert torch.autograd.gradcheck(lambda v: apply_correspondence(v, corr.face_vertices, corr.weights), (vb,))
 
 
+def _reference_apply(vertices, face_vertices, weights):
+    """The autograd formula of apply_correspondence as it was before the batch-inner kernel."""
+    n = face_vertices.shape[0]
+    u = vertices.index_select(-2, face_vertices.reshape(-1)).unflatten(-2, (n, 3))
+    u1, u2, u3 = u.unbind(-2)
+    e2, e3 = u2 - u1, u3 - u1
+    e4 = torch.linalg.cross(e2, e3, dim=-1)
+    return u1 + weights[:, 1:2] * e2 + weights[:, 2:3] * e3 + weights[:, 3:4] * e4
+
+
+def _random_correspondence(g, vs=40, n=1001, dtype=F64):
+    fv = torch.stack([torch.randperm(vs, generator=g)[:3] for _ in range(n)])
+    w = torch.randn(n, 4, generator=g, dtype=dtype) * torch.tensor([1.0, 1.0, 1.0, 300.0], dtype=dtype)
+    w[:, 0] = 1 - w[:, 1:3].sum(1) - w[:, 3]
+    return fv, w
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("chunk", [None, 64])
+def test_apply_matches_reference_formula(threads, chunk, monkeypatch):
+    """Every path (autograd formula, batch-inner kernel, chunked or not) vs the formula, float64."""
+    import unibody.geometry.tetra as tetra
+
+    if chunk is not None:  # several chunks and a ragged last one (n = 1001)
+        monkeypatch.setattr(tetra, "_BATCH_INNER_CHUNK", chunk)
+    g = _gen(12)
+    fv, w = _random_correspondence(g)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for shape in [(40, 3), (0, 40, 3), (1, 40, 3), (3, 40, 3), (4, 40, 3), (37, 40, 3)]:
+            v = 0.1 * torch.randn(shape, generator=g, dtype=F64)  # outputs O(1), as for metres
+            want = _reference_apply(v, fv, w)
+            for min_b in (tetra._BATCH_INNER_MIN_B, 1):  # also force the kernel at B = 1 and 3
+                monkeypatch.setattr(tetra, "_BATCH_INNER_MIN_B", min_b)
+                got = apply_correspondence(v, fv, w)
+                assert got.shape == want.shape and got.is_contiguous()
+                torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
+            # int32 ids, a non-contiguous input
+            vt = v.transpose(-1, -2).contiguous().transpose(-1, -2)
+            torch.testing.assert_close(apply_correspondence(vt, fv.int(), w), want, atol=1e-12, rtol=0)
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_apply_batch_inner_kernel_float32_and_autograd_paths():
+    import unibody.geometry.tetra as tetra
+
+    g = _gen(13)
+    fv, w = _random_correspondence(g)
+    v = 0.1 * torch.randn(8, 40, 3, generator=g, dtype=F64)
+    want = _reference_apply(v, fv, w)
+    assert tetra._batch_inner_applies(v.float(), w.float())
+    # float32 keeps the cancellation-free accuracy (|b4| in the hundreds).
+    got32 = apply_correspondence(v.float(), fv, w.float())
+    assert float((got32.double() - want).abs().max()) < 1e-3 * float(want.abs().max())
+    # Inputs that need a graph take the autograd formula; no_grad takes the kernel.
+    vg = v.clone().requires_grad_()
+    assert not tetra._batch_inner_applies(vg, w)
+    out = apply_correspondence(vg, fv, w)
+    assert out.requires_grad
+    (gv,) = torch.autograd.grad(out.square().sum(), vg)
+    (gr,) = torch.autograd.grad(_reference_apply(vg, fv, w).square().sum(), vg)
+    torch.testing.assert_close(gv, gr, atol=1e-12, rtol=0)
+    with torch.no_grad():
+        assert tetra._batch_inner_applies(vg, w)
+        torch.testing.assert_close(apply_correspondence(vg, fv, w), want, atol=1e-12, rtol=0)
+    assert not tetra._batch_inner_applies(v, w.clone().requires_grad_())
+    assert not torch.func.vmap(lambda x: torch.tensor(tetra._batch_inner_applies(x, w)))(v[None]).any()
+
+
 def test_apply_validation():
     verts = torch.randn(5, 3, dtype=F64)
     fv = torch.tensor([[0, 1, 2]])
