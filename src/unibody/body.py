@@ -164,7 +164,9 @@ class BodyOutput:
     """A posed batch.
 
     Attributes:
-        vertices: (B, V, 3) m, posed mesh, world frame.
+        vertices: (B, V, 3) m, posed mesh, world frame; for B > 1 a view of vertex-major
+            (V, B, 3) storage, the sparse product's own layout (``.contiguous()`` packs it,
+            ``.reshape`` works where ``.view`` does not).
         joints: (B, J, 3) m, posed joint positions, Root included (row 0, at the origin).
         transforms: (B, J, 4, 4) posed world transforms G_k of the joints.
         rest_vertices: (B, V, 3) m, the canonical rest mesh of each item (may be a broadcast view).
