@@ -414,12 +414,6 @@ def test_gpu_inversion_presets(preset, dtype):
 
 
 @gpu
-@pytest.mark.xfail(
-    raises=RuntimeError,
-    strict=False,
-    reason="fitting/inversion.py builds vertex_weight on the CPU: a PoseInverter made from a CUDA layer "
-    "cannot run the autograd method (reported in docs/gpu.md; .to('cuda') on the inverter is the workaround)",
-)
 def test_gpu_inversion_accurate():
     check_inversion("cuda", F32, "accurate")
 

@@ -176,9 +176,9 @@ class PoseInverter(nn.Module):
         self._gn = (
             gauss_newton_data(layer, self.config.gauss_newton_samples) if self.config.gauss_newton_steps else None
         )
-        regions = joint_regions(names)[dominant]
+        regions = joint_regions(names)[dominant.cpu()]  # a CPU table; the buffer follows the layer
         weights = torch.tensor(self.config.region_weights, dtype=layer.skin_weight.dtype)[regions]
-        self.register_buffer("vertex_weight", weights / weights.mean(), persistent=False)
+        self.register_buffer("vertex_weight", (weights / weights.mean()).to(layer.skin_weight.device), persistent=False)
         self._init_checks(layer)
 
     def _init_checks(self, layer: BodyLayer) -> None:
