@@ -313,7 +313,7 @@ class BodyLayer(nn.Module):
         local = self.bind_local_rotations().expand(b, -1, -1, -1)
         return self.pose(prepared, local, transl=prepared.rest_joints[:, 1], absolute=True).vertices
 
-    def prepare_rest(self, rest_vertices: torch.Tensor, *, _keep_skin: bool = True) -> PreparedIdentity:
+    def prepare_rest(self, rest_vertices: torch.Tensor) -> PreparedIdentity:
         """Fit the skeleton to canonical rest meshes (B, V, 3), metres.
 
         A single identity also keeps its skinning values (:attr:`PreparedIdentity.skin_values`),
@@ -324,6 +324,13 @@ class BodyLayer(nn.Module):
             ValueError: wrong shape, NaN/inf values, or a bounding-box diagonal outside
                 :data:`REST_EXTENT_M` (0.1 to 10 m): a collapsed mesh, or one not in metres.
         """
+        prepared = self._fit_rest(rest_vertices)
+        if rest_vertices.shape[0] != 1:  # many identities are posed by blending (geometry.skinning)
+            return prepared
+        return prepared._keep(skin_values(rest_vertices, self.skin_weight, registered_skin_layout(self)))
+
+    def _fit_rest(self, rest_vertices: torch.Tensor) -> PreparedIdentity:
+        """:meth:`prepare_rest` without the kept skinning values (identities posed once)."""
         check_shape(rest_vertices, f"B {self.num_vertices} 3", name="rest_vertices")
         check_like(rest_vertices, self.tpose_orient, name="rest_vertices")
         check_finite(rest_vertices, "rest_vertices")
@@ -332,10 +339,7 @@ class BodyLayer(nn.Module):
         rot, pos = self.skeleton.fit(rest_vertices)
         rp_t = rot[:, self.parents].transpose(-1, -2)
         offsets = (rp_t @ (pos - pos[:, self.parents])[..., None]).squeeze(-1)
-        prepared = PreparedIdentity(rest_vertices, rot, pos, offsets)
-        if rest_vertices.shape[0] != 1 or not _keep_skin:  # posed by blending (geometry.skinning)
-            return prepared
-        return prepared._keep(skin_values(rest_vertices, self.skin_weight, registered_skin_layout(self)))
+        return PreparedIdentity(rest_vertices, rot, pos, offsets)
 
     @staticmethod
     def _check_extent(rest: torch.Tensor) -> None:
@@ -362,19 +366,21 @@ class BodyLayer(nn.Module):
             f"rest_vertices: bounding-box diagonal {d:.4g} m at batch {b} is outside [{lo:g}, {hi:g}] m; {why}"
         )
 
-    def prepare_identity(self, params: torch.Tensor, *, _keep_skin: bool = True) -> PreparedIdentity:
+    def prepare_identity(self, params: torch.Tensor) -> PreparedIdentity:
         """Run the identity backend, the topology transfer and the skeleton fit once.
 
         Args:
             params: (B, K) the backend's identity parameters (for Anny: 6 phenotypes in
                 [0, 1], then local changes).
         """
+        return self.prepare_rest(self._rest_mesh(params))
+
+    def _rest_mesh(self, params: torch.Tensor) -> torch.Tensor:
+        """Canonical rest meshes (B, V, 3) of identity parameters: the backend, then the transfer."""
         if self.identity is None:
             raise ValueError("params: this layer has no identity backend; use prepare_rest(vertices)")
         rest = self.identity(params)
-        if self.topology is not None:
-            rest = self.topology(rest)
-        return self.prepare_rest(rest, _keep_skin=_keep_skin)
+        return rest if self.topology is None else self.topology(rest)
 
     @property
     def skinning(self) -> Skinning:
@@ -684,5 +690,4 @@ class BodyLayer(nn.Module):
         The identity is used once, so it keeps no skinning values: its meshes are skinned by
         blending (``geometry.skinning``), cheaper than building them for one use.
         """
-        prepared = self.prepare_identity(params, _keep_skin=False)
-        return self.pose(prepared, pose, transl=transl, absolute=absolute)
+        return self.pose(self._fit_rest(self._rest_mesh(params)), pose, transl=transl, absolute=absolute)

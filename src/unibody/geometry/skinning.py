@@ -274,7 +274,7 @@ def lbs_sparse(
     Returns:
         (B, V, 3) skinned vertices.
     """
-    return _SparseSkin.apply(rest, mats.permute(1, 3, 2, 0), weight, layout, values)
+    return lbs_joint_major(rest, mats.permute(1, 3, 2, 0), weight, layout, values)
 
 
 def lbs_dense(rest: torch.Tensor, mats: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
