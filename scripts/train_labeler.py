@@ -34,7 +34,12 @@ bit-identical across devices). ``--layers`` above the ``--init`` labeler's grows
 new blocks come last and start as the identity, so training starts from the labels it gave.
 ``--motions`` poses a fraction ``--motion-prob`` of the samples from the frames of unibody
 motion files (the paper trains on AMASS: its sequences, turned into canonical rotations by
-``unibody invert``, fit here), each turned to a random heading; the shipped weights used none.
+``unibody invert``, fit here; or CMU's BVH and ASF/AMC through ``unibody convert``), each
+turned to a random heading (``--lab-variation`` also mirrors half of them and jitters every
+joint). Folders are walked for ``*.motion.npz``; ``--motion-holdout`` keeps subjects out (their
+frames pose the validation set instead). ``--lab-variation`` switches on
+:data:`unibody.mocap.synthetic.LAB_VARIATION` (how labs differ: midline and waist markers,
+the asymmetric back marker, suits, soft tissue, calibration scale, wider bodies).
 
 Data is drawn on the fly from :class:`unibody.mocap.synthetic.SyntheticMocap` (a pool of
 PCA bodies from ``--pool-seed``, seeded poses, jitter, noise, occlusions, ghosts). Validation
@@ -42,7 +47,8 @@ uses a fixed set from a disjoint body pool and random stream. Resumable: a check
 written every ``--checkpoint-every`` seconds and on Ctrl-C; rerunning the same command
 continues from it (model, optimiser, schedule and random state). The final weights go to
 ``<out>/labeler.pt`` with the command, seed, steps and validation metrics in their metadata.
-No real mocap is used.
+No real mocap is used, and no evaluation file: the script refuses motion files of the
+evaluation subjects (``../shared/motions/cmu/manifest.json``'s ``excluded_subjects``).
 """
 
 from __future__ import annotations
@@ -65,10 +71,13 @@ from unibody.mocap.labeler import Labeler, labeling_loss, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.orient import torso_template
 from unibody.mocap.pipeline import load_labeler
-from unibody.mocap.synthetic import POSE, SyntheticConfig, SyntheticMocap
+from unibody.mocap.synthetic import LAB_VARIATION, POSE, SyntheticConfig, SyntheticMocap
 from unibody.motion import load_motion
 
 HEAD_BANDS = (("FHD", 10.0, 100.0), ("BHD", 110.0, 170.0))  # --head-bands: azimuths from the front, degrees
+# The CMU subjects of the evaluation files (../shared/evaldata: cmu_85_*, cmu_131_*, cmu_135_*):
+# never trained on (the motions folder leaves them out; this refuses them if given by hand).
+EVALUATION_SUBJECTS = (85, 131, 135)
 
 
 def synthetic(
@@ -100,12 +109,37 @@ def synthetic(
         stature_prob=args.stature_prob, bands=HEAD_BANDS if args.head_bands else (),
         pose={**POSE, "ranges": ranges, **({} if args.fold is None else {"fold": args.fold})}, segments=segments,
         motion_prob=args.motion_prob,
+        **(LAB_VARIATION if args.lab_variation else {}),
         **({} if args.fitted is None else {"fitted": True, "jitter_radius": args.fitted}),
     )  # fmt: skip
     return SyntheticMocap(layout, cfg, motions=motions)
 
 
-def read_motions(paths: list[str]) -> torch.Tensor | None:
+def motion_subject(path: Path) -> int | None:
+    """The CMU subject of a motion file named like CMU's takes (``02_01.motion.npz`` -> 2), else None."""
+    head = path.name.split("_")[0]
+    return int(head) if head.isdigit() and "_" in path.name else None
+
+
+def motion_files(paths: list[str], holdout: list[int]) -> tuple[list[Path], list[Path]]:
+    """The motion files given (folders walked for ``*.motion.npz``), split into (training, held out)."""
+    files = []
+    for x in map(Path, paths):
+        if x.is_dir():
+            files += sorted(x.rglob("*.motion.npz"))
+        elif x.is_file():
+            files.append(x)
+        else:
+            raise SystemExit(f"--motions: {x}: no such file or folder")
+    if not files and paths:
+        raise SystemExit(f"--motions: no *.motion.npz under {' '.join(paths)}")
+    if bad := [f.name for f in files if motion_subject(f) in EVALUATION_SUBJECTS]:
+        raise SystemExit(f"--motions: {bad[0]} is a take of an evaluation subject {EVALUATION_SUBJECTS}; never train on it")
+    kept = [f for f in files if motion_subject(f) not in holdout]
+    return kept, [f for f in files if motion_subject(f) in holdout]
+
+
+def read_motions(paths: list[Path]) -> torch.Tensor | None:
     """The pose frames (F, 77, 3) of unibody motion files, stacked (None without files)."""
     if not paths:
         return None
@@ -206,9 +240,14 @@ def main(argv: list[str] | None = None) -> None:
         help="m, range of an extra marker's distance to the nearest layout vertex",
     )  # fmt: skip
     p.add_argument(
-        "--motions", nargs="+", default=[], metavar="FILE",
-        help="unibody motion files (.npz, e.g. from `unibody invert`) whose frames pose --motion-prob of the samples",
+        "--motions", nargs="+", default=[], metavar="PATH",
+        help="unibody motion files (.npz) or folders of *.motion.npz whose frames pose --motion-prob of the samples",
     )  # fmt: skip
+    p.add_argument(
+        "--motion-holdout", nargs="+", type=int, default=[], metavar="SUBJECT",
+        help="CMU subjects (by file name, 02_01.motion.npz -> 2) kept out of training; they pose the validation set",
+    )  # fmt: skip
+    p.add_argument("--lab-variation", action="store_true", help="draw lab differences (synthetic.LAB_VARIATION)")
     p.add_argument("--motion-prob", type=float, default=0.5, help="fraction of samples posed from --motions")
     p.add_argument("--pool-seed", type=int, default=0)
     p.add_argument("--seed", type=int, default=0)
@@ -241,9 +280,10 @@ def main(argv: list[str] | None = None) -> None:
     layout = MarkerLayout.load(args.layout)
     if not 0.0 <= args.motion_prob <= 1.0:
         raise SystemExit(f"--motion-prob: expected a probability in [0, 1], got {args.motion_prob}")
-    motions = read_motions(args.motions)
+    train_files, held_files = motion_files(args.motions, args.motion_holdout)
+    motions, held = read_motions(train_files), read_motions(held_files)
     train_data = synthetic(args, layout, args.pool_seed, args.identities, motions)
-    val_data = synthetic(args, layout, args.pool_seed + 1000, 256, motions)  # disjoint bodies
+    val_data = synthetic(args, layout, args.pool_seed + 1000, 256, motions if held is None else held)  # disjoint bodies
     val_gen = torch.Generator().manual_seed(10_000 + args.seed)
     size, count = min(256, args.val_frames), max(1, args.val_frames // 256)
     val = [val_data.sample(size, val_gen).to(device) for _ in range(count)]
@@ -362,8 +402,11 @@ def main(argv: list[str] | None = None) -> None:
         "cluster_radius": args.cluster_radius,
         "stick_prob": args.stick_prob,
         "head_bands": args.head_bands,
-        "motions": [Path(x).name for x in args.motions],
+        "motions": [x.name for x in train_files],
+        "motion_subjects": sorted({motion_subject(x) for x in train_files} - {None}),
+        "motion_holdout": [x.name for x in held_files],
         "motion_frames": 0 if motions is None else len(motions),
+        "lab_variation": LAB_VARIATION if args.lab_variation else None,
         "motion_prob": args.motion_prob if args.motions else None,
         "orient_with": args.orient_with,
         "orienter_refine": args.orienter_refine if args.orient_with else None,

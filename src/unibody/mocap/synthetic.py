@@ -44,11 +44,12 @@ from .._checks import check_finite, check_shape
 from ..body import BodyLayer, PreparedIdentity
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..rig import Rig
-from ..synth.poses import sample_poses
+from ..symmetry import canonical_mirror_map
+from ..synth.poses import mirror_rotation, sample_poses
 from .corrupt import MocapBatch, corrupt_frames
 from .layout import MarkerLayout, vertex_normals
 
-__all__ = ["POSE", "SyntheticConfig", "SyntheticMocap"]
+__all__ = ["LAB_VARIATION", "POSE", "SyntheticConfig", "SyntheticMocap", "mirror_pose"]
 
 # Poses of the mocap recipe: a quarter of the bodies tumbling (floor work, flips, handstands)
 # and the head turning as far as people turn it (cervical rotation 80-90 deg each way). The
@@ -73,6 +74,38 @@ POSE = {
         "Head": ((-0.2, -0.65, -0.15), (0.3, 0.65, 0.15), (0.0, 0.0, 0.0)),
     },
 }
+
+# How labs differ beyond the slack of the placement guides (issue 38; SyntheticConfig says what
+# each knob does). Distances are metres on the rest mesh of the mean PCA body (1.51 m tall:
+# an adult's are ~1.16x). Each range comes from the guides and from what is known of labs
+# the labeler was not built on, never from the evaluation files:
+# - T10: labs count vertebrae differently or put the marker "mid-back" (a held-out lab sits it
+#   16-22 cm higher than CMU); from 5 cm below the layout's T10 to 14 cm above it (3 cm under
+#   C7's lowest placement). STRN: the xiphoid or mid-sternum, +-5 cm.
+# - back-waist markers (over the PSIS, or "on the back of the waist") 6-20 cm apart (CMU ~10.5,
+#   a held-out lab 17-18); front waist/ASIS over 7-14 cm from the midline.
+# - RBAC/RBAK exists only to break left/right symmetry: one actor in five wears it on the left.
+# - marker height: bare skin to a suit with padding, 0-1 cm more under every marker of a sample.
+# - soft tissue: thigh, shank, arm and trunk markers move 0-8 mm (per-sample std) about their
+#   skinned place, frame by frame (skin and suit slide over muscle and fat).
+# - calibration scale: a wand or unit slip scales the whole capture volume by +-2 %.
+# - bodies: a quarter of the pool draws its non-stature PCA coefficients 1.6x wider (heavier,
+#   thinner, longer-limbed than the one-sigma range).
+# - motion frames: mirrored left/right half of the time, every joint jittered by 0.03 rad.
+LAB_VARIATION = {
+    "midline": (("T10", -0.05, 0.14), ("STRN", -0.05, 0.05)),
+    "lateral": (("BWT", 0.03, 0.10), ("PSI", 0.025, 0.08), ("FWT", 0.07, 0.14), ("ASI", 0.08, 0.125)),
+    "mirror_labels": ("RBAC", "RBAK"),
+    "mirror_prob": 0.2,
+    "suit": (0.0, 0.01),
+    "soft_tissue": 0.008,
+    "scale": (0.98, 1.02),
+    "shape_tail_prob": 0.25,
+    "shape_tail_scale": 1.6,
+    "motion_mirror": 0.5,
+    "motion_noise": 0.03,
+}
+SOFT_TISSUE = ("THI", "SHN", "TIB", "UPA", "FRM", "FWT", "BWT", "ASI", "PSI", "STRN", "T10", "BAC", "BAK")
 
 
 @dataclass(frozen=True)
@@ -133,6 +166,22 @@ class SyntheticConfig:
         motion_prob: with ``motions`` (see :class:`SyntheticMocap`), the fraction of samples posed
             from a random motion frame instead of ``sample_poses``.
         spread: m, the Hips are placed uniformly in a square of this half-width (lab floor).
+        midline, midline_width: ``(label suffix, lo, hi)``: markers on the body's midline (T10,
+            STRN) anywhere within ``midline_width`` m of the sagittal plane whose height on the
+            mean rest mesh is the layout vertex's + [lo, hi] m (same side of the body).
+        lateral, lateral_band: ``(label suffix, lo, hi)``: paired waist markers at a distance
+            from the midline in [lo, hi] m, within ``lateral_band`` m of the layout vertex's
+            height, on the marker's side and the same side of the body.
+        mirror_labels, mirror_prob: per sample, with probability ``mirror_prob``, these markers
+            (the asymmetric back marker) sit at the mirror image of their drawn vertex.
+        suit: m, per sample, every marker sits this much farther from the skin (uniform range).
+        soft_tissue: m, markers whose label ends with one of :data:`SOFT_TISSUE` move about
+            their place by a Gaussian of a per-sample std uniform in [0, soft_tissue].
+        scale: per sample, the capture volume is scaled about the Hips by a factor in this range.
+        shape_tail_prob, shape_tail_scale: a fraction of the pool draws its coefficients past
+            the first (stature) with std ``shape_scale * shape_tail_scale``.
+        motion_mirror, motion_noise: motion frames are mirrored left/right with this
+            probability, and every joint gets Gaussian noise of this std (rad).
     """
 
     identities: int = 1024
@@ -183,6 +232,29 @@ class SyntheticConfig:
     pose: dict = field(default_factory=lambda: dict(POSE))
     motion_prob: float = 0.5
     spread: float = 2.0
+    midline: tuple[tuple[str, float, float], ...] = ()
+    midline_width: float = 0.02
+    lateral: tuple[tuple[str, float, float], ...] = ()
+    lateral_band: float = 0.025
+    mirror_labels: tuple[str, ...] = ()
+    mirror_prob: float = 0.0
+    suit: tuple[float, float] = (0.0, 0.0)
+    soft_tissue: float = 0.0
+    scale: tuple[float, float] = (1.0, 1.0)
+    shape_tail_prob: float = 0.0
+    shape_tail_scale: float = 1.0
+    motion_mirror: float = 0.0
+    motion_noise: float = 0.0
+
+
+def mirror_pose(pose: torch.Tensor, joint_names: tuple[str, ...]) -> torch.Tensor:
+    """Reflect (B, 77, 3) T-pose-relative axis-angle poses through the sagittal plane: each
+    joint takes its left/right partner's rotation, reflected ((x, y, z) -> (x, -y, -z));
+    ``joint_names`` are the 78 public joints (Root first), as ``BodyLayer.joint_names``."""
+    names = list(joint_names[1:])
+    swap = {"Left": "Right", "Right": "Left"}
+    partner = [names.index(next((swap[k] + n[len(k):] for k in swap if n.startswith(k)), n)) for n in names]
+    return mirror_rotation(pose[:, partner])
 
 
 def _true_first(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -220,7 +292,9 @@ class SyntheticMocap:
             motions = motions.detach().to(torch.float32).clone()
         self.motions = motions
         if config.fitted:  # the session's own placement: no guide rules
-            config = replace(config, segments=(), loose=(), bands=(), stick_labels=())
+            config = replace(
+                config, segments=(), loose=(), bands=(), stick_labels=(), midline=(), lateral=(), mirror_labels=()
+            )
         self.layout, self.config = layout, config
         cfg_sticks = set(config.stick_labels)
         layer = BodyLayer.from_pca(num_components=config.shape_components)
@@ -240,6 +314,9 @@ class SyntheticMocap:
             y = probe_body.rest_vertices[..., 1]
             h = y.amax(1) - y.amin(1)  # stature is linear in the coefficient
             coeffs[:, 0] = torch.where(adult, (tall - h[0]) / (h[1] - h[0]), coeffs[:, 0])
+        if config.shape_tail_prob > 0:  # drawn last: pools without tails stay as they were
+            tail = torch.rand(config.identities, generator=gen) < config.shape_tail_prob
+            coeffs[tail, 1:] *= config.shape_tail_scale
         self.coefficients = coeffs  # (identities, shape_components): the pool's PCA bodies
         # Candidate vertices of each marker: within its jitter radius of its vertex on the mean rest mesh.
         with torch.no_grad():
@@ -272,12 +349,33 @@ class SyntheticMocap:
                 azimuth = torch.rad2deg(torch.atan2(side * head[:, 0], head[:, 2]))
                 height = (head[:, 1] - head[layout.vertices[i], 1]).abs() <= config.band_height
                 near[i] = (azimuth >= lo) & (azimuth <= hi) & height & outward
+            for i, label in enumerate(layout.labels):  # midline markers up and down the spine/sternum
+                rule = [x for x in config.midline if label.endswith(x[0])]
+                if rule:
+                    _, lo, hi = rule[0]
+                    dy = mean[:, 1] - mean[layout.vertices[i], 1]
+                    near[i] = (mean[:, 0].abs() <= config.midline_width) & (dy >= lo) & (dy <= hi) & same_side[i]
+            for i, label in enumerate(layout.labels):  # paired waist markers nearer/farther apart
+                rule = [x for x in config.lateral if label.endswith(x[0])]
+                if rule:
+                    _, lo, hi = rule[0]
+                    x0 = mean[layout.vertices[i], 0]
+                    away = mean[:, 0] * torch.sign(x0)
+                    level = (mean[:, 1] - mean[layout.vertices[i], 1]).abs() <= config.lateral_band
+                    near[i] = (away >= lo) & (away <= hi) & level & same_side[i]
             near[torch.arange(len(layout)), layout.vertices] = True
             lo, hi = config.extra_distance
             nearest = d.min(0).values
             pool = ((nearest >= lo) & (nearest <= hi)).nonzero().squeeze(1)  # candidates of extra markers
             pool = pool[torch.randperm(len(pool), generator=gen)[:2048]].sort().values if config.extras else pool[:0]
             taken = near.any(0)
+            mirrored = torch.tensor([x.endswith(tuple(config.mirror_labels)) for x in layout.labels], dtype=torch.bool)
+            if config.mirror_labels and config.mirror_prob > 0:
+                partner = canonical_mirror_map().index
+                taken[partner[near[mirrored].any(0).nonzero().squeeze(1)]] = True
+            else:
+                partner, mirrored = torch.arange(layer.num_vertices), torch.zeros_like(mirrored)
+            self.mirrored = mirrored  # (M,) markers moved to their mirror image in a fraction of samples
             taken[pool] = True
             used = taken.nonzero().squeeze(1)  # (U,) vertex ids any marker may take
             local = near[:, used]  # (M, U)
@@ -289,6 +387,7 @@ class SyntheticMocap:
             pos = torch.full((layer.num_vertices,), -1, dtype=torch.long)
             pos[used] = torch.arange(len(used))
             self.extra_pool = pos[pool]  # (P,) indices into `used`
+            self.mirror_used = pos[partner[used]]  # (U,) the mirror image of each used vertex (-1: not used)
             near_pool = torch.cdist(mean[pool], mean[pool]) <= config.cluster_radius  # (P, P), self included
             self.cluster_members, self.cluster_count = _true_first(near_pool)  # (P, K) into the pool; (P,)
             rig = Rig.canonical()
@@ -307,6 +406,7 @@ class SyntheticMocap:
         self.rest, self.normals = torch.cat(rest), torch.cat(normals)
         self.rest_rotations, self.rest_joints, self.offsets = torch.cat(rot), torch.cat(joints), torch.cat(offsets)
         self.stick = torch.tensor([x in cfg_sticks for x in layout.labels], dtype=torch.bool)
+        self.soft = torch.tensor([x.endswith(SOFT_TISSUE) for x in layout.labels], dtype=torch.bool)
         self.subset_masks = [
             torch.tensor([x in set(s) for x in layout.labels], dtype=torch.bool) for s in config.subsets
         ]
@@ -330,6 +430,12 @@ class SyntheticMocap:
             return pose
         use = torch.rand(batch, generator=generator) < self.config.motion_prob
         frame = self.motions[torch.randint(len(self.motions), (batch,), generator=generator)]
+        cfg = self.config
+        if cfg.motion_mirror > 0:
+            flip = torch.rand(batch, generator=generator) < cfg.motion_mirror
+            frame = torch.where(flip[:, None, None], mirror_pose(frame, self.layer.joint_names), frame)
+        if cfg.motion_noise > 0:
+            frame = frame + cfg.motion_noise * torch.randn(frame.shape, generator=generator)
         heading = 2 * math.pi * torch.rand(batch, 1, generator=generator)
         turn = axis_angle_to_matrix(heading * torch.tensor([0.0, 1.0, 0.0]))
         # the Hips' world rotation is O_root^T R O_hips (R: its pose entry); turn it: R -> O_root turn O_root^T R
@@ -365,6 +471,9 @@ class SyntheticMocap:
         _, _, mats = self.layer.skin_transforms(prepared, local, transl)  # (B, J, 3, 4)
         pick = (torch.rand(batch, m, generator=generator) * self.num_candidates).long()
         u = self.candidates.gather(1, pick.T).T  # (B, M) indices into `used`
+        if self.mirrored.any():
+            flip = (torch.rand(batch, 1, generator=generator) < cfg.mirror_prob) & self.mirrored
+            u = torch.where(flip, self.mirror_used[u], u)
         if extras:
             pick = torch.randint(len(self.extra_pool), (batch, extras), generator=generator)
             if clusters:
@@ -387,8 +496,18 @@ class SyntheticMocap:
             stick = slo + (shi - slo) * torch.rand(batch, m, 1, generator=generator)
             on = (torch.rand(batch, 1, 1, generator=generator) < cfg.stick_prob) & self.stick[:, None]
             dist[:, :m] = torch.where(on, stick, dist[:, :m])
+        if cfg.suit[1] > 0:
+            dist = dist + cfg.suit[0] + (cfg.suit[1] - cfg.suit[0]) * torch.rand(batch, 1, 1, generator=generator)
         sigma = cfg.noise[0] + (cfg.noise[1] - cfg.noise[0]) * torch.rand(batch, 1, 1, generator=generator)
         out = posed + normal * dist + sigma * torch.randn(batch, k, 3, generator=generator)
+        if cfg.soft_tissue > 0 and self.soft.any():
+            std = cfg.soft_tissue * torch.rand(batch, 1, 1, generator=generator)
+            wobble = std * torch.randn(batch, m, 3, generator=generator) * self.soft[:, None]
+            out = torch.cat([out[:, :m] + wobble, out[:, m:]], dim=1)
+        if cfg.scale != (1.0, 1.0):
+            lo, hi = cfg.scale
+            s = lo + (hi - lo) * torch.rand(batch, 1, 1, generator=generator)
+            out = transl[:, None] + s * (out - transl[:, None])
         out, extra = out[:, :m], out[:, m:]
         if self.subset_masks:
             which = torch.randint(len(self.subset_masks), (batch,), generator=generator)
