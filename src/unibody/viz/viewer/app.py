@@ -12,6 +12,8 @@ skips frames when updates are slower than the rate, so a motion always plays at 
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 import threading
 import time
@@ -83,7 +85,8 @@ class Viewer:
         self.fps = max(item.fps for item in self.items)
         self.num_frames = max(1, int(round(max(item.duration for item in self.items) * self.fps)) + 1)
         self.requested_port = int(port)
-        self.server = viser.ViserServer(host=host, port=int(port), verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own address box on stdout
+            self.server = viser.ViserServer(host=host, port=int(port), verbose=False)
         self.port = self.server.get_port()
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -322,7 +325,8 @@ class Viewer:
         """Stop playback and the server (clients see it disconnect)."""
         self._stop.set()
         self._thread.join(timeout=5.0)
-        self.server.stop()
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()
 
     def __enter__(self) -> Viewer:
         return self
