@@ -316,7 +316,11 @@ class Viewer:
             return None if g == self.frame else g
 
     def _playback(self) -> None:
-        while not self._stop.wait(self._period):
+        # Ticks on a fixed schedule (not a fixed sleep after each update), so the time an update
+        # takes does not lower the rate; a tick that falls behind skips to the next one due.
+        tick = time.perf_counter()
+        while not self._stop.wait(max(0.0, tick - time.perf_counter())):
+            tick = max(tick + self._period, time.perf_counter() - self._period)
             g = self._advance()
             if g is not None:
                 self.gui.frame.value = g  # the slider's callback shows it
