@@ -48,13 +48,13 @@ import torch
 
 from unibody.mocap.c3d import MarkerSequence, read_markers
 from unibody.mocap.corrupt import MocapBatch, break_trajectories, corrupt_frames
-from unibody.mocap.labeler import Labeler, label_frames, predict
+from unibody.mocap.labeler import Labeler, frame_probabilities, label_frames, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.metrics import labeling_scores
 from unibody.mocap.pipeline import load_labeler, render_solution, solve_sequence
 from unibody.mocap.relabel import relabel
 from unibody.mocap.solve import lab_to_unibody
-from unibody.mocap.tracklets import label_tracklets
+from unibody.mocap.tracklets import label_tracklets, settle_tracklets
 
 FILES = {
     "cmu41": ["c3d/cmu_85_02.c3d", "c3d/cmu_85_12.c3d", "c3d/cmu_135_02.c3d"],
@@ -155,16 +155,45 @@ def broken_sequence(marked, ghosts, rng, null: int) -> tuple[np.ndarray, np.ndar
     return broken, truth_col[source]
 
 
+def join_trajectories(points, truth, count: int, rng) -> tuple[np.ndarray, np.ndarray]:
+    """Two trajectories joined wrongly, ``count`` times: at a frame t in [2, T-1), two columns visible
+    at t with different true labels swap their samples from t on (a tracker that swapped two markers
+    that came close); (T, N, 3) points and (T, N) per-sample true labels."""
+    pts, tru = points.copy(), np.array(truth, copy=True)
+    t = len(pts)
+    for _ in range(count):
+        for _ in range(100):
+            f = int(rng.integers(2, t - 1))
+            cols = np.flatnonzero(np.isfinite(pts[f]).all(-1))
+            if len(cols) < 2:
+                continue
+            i, j = rng.choice(cols, 2, replace=False)
+            if tru[f, i] != tru[f, j]:
+                pts[f:, [i, j]] = pts[f:, [j, i]]
+                tru[f:, [i, j]] = tru[f:, [j, i]]
+                break
+    return pts, tru
+
+
+JOINS = 10  # wrongly joined trajectory pairs per file (the "joined" protocol)
+
+
 def tracklet(model: Labeler, marked, ghosts, gen: torch.Generator, rng) -> dict[str, tuple]:
-    """Broken sequence (:func:`broken_sequence`), per-frame labels, then the majority vote per column."""
+    """Broken sequence (:func:`broken_sequence`), per-frame labels, then the sequence's labels:
+    the majority vote per column (``vote``) and :func:`settle_tracklets` (``tracklet``); then the
+    same sequence with :data:`JOINS` wrongly joined trajectory pairs (``joined_*``)."""
     null = model.num_labels
     broken, truth = broken_sequence(marked, ghosts, rng, null)
-    vis = np.isfinite(broken).all(-1)
-    frame = label_frames(model, torch.as_tensor(broken, dtype=torch.float32))
-    vis = torch.from_numpy(vis)
-    track = label_tracklets(frame, vis, null)
-    truth_tn = torch.from_numpy(truth).expand(vis.shape)
-    return {"frame": (frame[vis], truth_tn[vis]), "tracklet": (track[vis], truth_tn[vis])}
+    rows = {}
+    joined, jtruth = join_trajectories(broken, np.broadcast_to(truth, broken.shape[:2]), JOINS, rng)
+    for key, pts, tru in (("", broken, np.broadcast_to(truth, broken.shape[:2])), ("joined_", joined, jtruth)):
+        vis = torch.from_numpy(np.isfinite(pts).all(-1))
+        fl = frame_probabilities(model, torch.as_tensor(pts, dtype=torch.float32))
+        tru = torch.from_numpy(np.ascontiguousarray(tru))
+        rows[f"{key}frame"] = (fl.labels[vis], tru[vis])
+        rows[f"{key}vote"] = (label_tracklets(fl.labels, vis, null)[vis], tru[vis])
+        rows[f"{key}tracklet"] = (settle_tracklets(fl.prob, vis)[vis], tru[vis])
+    return rows
 
 
 def fmt(scores: dict) -> str:
@@ -182,15 +211,20 @@ def score_file(model: Labeler, seq: MarkerSequence, seed: int, base: int, frames
     clean = per_frame(model, marked, ghosts, gen, occlusions=(0, 0), ghosts=(0, 0))
     noisy = per_frame(model, marked, ghosts, gen, frames)
     tr = tracklet(model, marked, ghosts, gen, rng)
-    rows = {"clean": clean, "noisy": noisy, "tr_frame": tr["frame"], "tracklet": tr["tracklet"]}
+    rows = {"clean": clean, "noisy": noisy, "tr_frame": tr["frame"], "vote": tr["vote"], "tracklet": tr["tracklet"]}
+    rows.update({f"j_{k}": tr[f"joined_{k}"] for k in ("frame", "vote", "tracklet")})
     return {k: (p.clamp_max(base), t.clamp_max(base)) for k, (p, t) in rows.items()}
 
 
+ROW_KEYS = ("clean", "noisy", "tr_frame", "vote", "tracklet", "j_frame", "j_vote", "j_tracklet")
+HEADER = (
+    "| file | model | frames | no noise | per-frame C+G | tracklet: per-frame | tracklet: vote | tracklet "
+    "| joined: per-frame | joined: vote | joined: tracklet |\n|---|---|---|---|---|---|---|---|---|---|---|"
+)
+
+
 def row(name: str, model: str, frames, scores: dict) -> str:
-    return (
-        f"| {name} | {model} | {frames} | {fmt(scores['clean'])} | {fmt(scores['noisy'])} | "
-        f"{fmt(scores['tr_frame'])} | {fmt(scores['tracklet'])} |"
-    )
+    return f"| {name} | {model} | {frames} | " + " | ".join(fmt(scores[k]) for k in ROW_KEYS) + " |"
 
 
 def pool(files: list[dict], null: int) -> dict:
@@ -200,10 +234,7 @@ def pool(files: list[dict], null: int) -> dict:
 def session_rows(root: Path, models: dict[str, Labeler], sessions: dict[str, Labeler], per_file: dict, seed: int):
     """The files of each session labelled by its session model, and the pooled rows with them."""
     print("\n## Session layouts (paper §4.5): the same rows, the session's files by its own labeler")
-    print(
-        "| file | model | frames | no noise | per-frame C+G | tracklet: per-frame | tracklet |\n"
-        "|---|---|---|---|---|---|---|"
-    )
+    print(HEADER)
     for name, files in FILES.items():
         base = models[name]
         mine = {k: m for k, m in sessions.items() if m.label_names[: base.num_labels] == base.label_names}
@@ -226,10 +257,7 @@ def session_rows(root: Path, models: dict[str, Labeler], sessions: dict[str, Lab
 
 def label_section(root: Path, models: dict[str, Labeler], seed: int, sessions: dict[str, Labeler]) -> None:
     print("\n## Labeling (accuracy / macro F1, %; labels hidden)")
-    print(
-        "| file | model | frames | no noise | per-frame C+G | tracklet: per-frame | tracklet |\n"
-        "|---|---|---|---|---|---|---|"
-    )
+    print(HEADER)
     table2: dict[str, list] = {}
     postures: dict[str, list] = {}
     per_file: dict[str, dict] = {}
@@ -399,6 +427,7 @@ def main() -> None:
     p.add_argument("--sections", nargs="+", default=["label", "body", "speed", "solve"])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="first file per model, first 300 frames (a smoke test)")
+    p.add_argument("--files", nargs="+", metavar="KEY", help="only the files whose name holds one of these")
     p.add_argument("--png", type=Path, default=Path("benchmarks/mocap_solve.png"))
     p.add_argument("--cmu41", default="cmu41", help="labeler weights (name or path)")
     p.add_argument("--pig39", default="pig39", help="labeler weights (name or path)")
@@ -414,7 +443,14 @@ def main() -> None:
             FILES[name] = FILES[name][:2]
         global MAX_FRAMES
         MAX_FRAMES = 300
-    models = {"cmu41": load_labeler(args.cmu41), "pig39": load_labeler(args.pig39)}
+    if args.files:
+        for name in list(FILES):
+            FILES[name] = [f for f in FILES[name] if any(k in Path(f).stem for k in args.files)]
+            if not FILES[name]:
+                del FILES[name]
+        if not FILES:
+            raise SystemExit(f"--files: no evaluation file's name holds any of {args.files}")
+    models = {k: load_labeler(getattr(args, k)) for k in FILES}
     sessions = {k: load_labeler(w) for k, _, w in (x.partition("=") for x in args.session)}
     for m in (*models.values(), *sessions.values()):
         m.eval().set_autocast(torch.bfloat16 if args.bf16 else None)

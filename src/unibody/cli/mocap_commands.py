@@ -61,11 +61,14 @@ def run_mocap_label(
         if report.frames and len(report.unlabelled) == report.frames:
             raise InputError(f"{src}: no frame could be labelled: {report.summary()}")
         (write_c3d if out.suffix.lower() == ".c3d" else write_npz)(out, labelled)
-    found = int(labelled.visible[:, : labeler.num_labels].sum())
+    found = int((seq.visible & (labelled.point_labels < labeler.num_labels)).sum())  # copies: their original's label
     total = int(seq.visible.sum())
+    merged = ""
+    if report.copies:
+        merged = f" ({len(report.copies)} copy columns merged: {', '.join(f'{c}={o}' for c, o in report.copies)})"
     print(
         f"labelled {seq.num_frames} frames in {dt:.1f} s ({seq.num_frames / dt:,.0f} frames/s): "
-        f"{found} of {total} points got a marker label; wrote {out}"
+        f"{found} of {total} points got a marker label{merged}; wrote {out}"
     )
 
 

@@ -57,7 +57,17 @@ from .sinkhorn import log_sinkhorn
 if TYPE_CHECKING:
     from .corrupt import MocapBatch
 
-__all__ = ["LABELER_FORMAT", "Labeler", "LabelerConfig", "check_retry", "label_frames", "labeling_loss", "predict"]
+__all__ = [
+    "LABELER_FORMAT",
+    "FrameLabels",
+    "Labeler",
+    "LabelerConfig",
+    "check_retry",
+    "frame_probabilities",
+    "label_frames",
+    "labeling_loss",
+    "predict",
+]
 
 LABELER_FORMAT = "unibody.labeler/1"
 _NEG_BIAS = -1.0e9  # attention logit of padding keys: softmax weight exactly 0
@@ -580,6 +590,21 @@ def predict(log_plan: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, t
     return labels, torch.where(mask, conf, 0.0)
 
 
+@dataclass(frozen=True, slots=True)
+class FrameLabels:
+    """Per-frame labels of a sequence and the probabilities they were decoded from.
+
+    Attributes:
+        labels: (T, N) int64 in [0, L] (:func:`predict`: no label twice in a frame; L = null,
+            also for missing points).
+        prob: (T, N, L+1) float32, each point's row of the plan (probabilities of the L labels
+            and null; they sum to 1); zeros for missing points.
+    """
+
+    labels: torch.Tensor
+    prob: torch.Tensor
+
+
 @torch.no_grad()
 def label_frames(model: Labeler, points: torch.Tensor, batch: int = 256) -> torch.Tensor:
     """Label every frame of a sequence.
@@ -593,12 +618,24 @@ def label_frames(model: Labeler, points: torch.Tensor, batch: int = 256) -> torc
         (T, N) int64 labels in [0, L]; L (null) for missing points and for points the
         model calls ghosts.
     """
+    return _label_frames(model, points, batch, False).labels
+
+
+@torch.no_grad()
+def frame_probabilities(model: Labeler, points: torch.Tensor, batch: int = 256) -> FrameLabels:
+    """:func:`label_frames` and each point's label probabilities (the evidence tracklets weigh)."""
+    return _label_frames(model, points, batch, True)
+
+
+def _label_frames(model: Labeler, points: torch.Tensor, batch: int, keep_prob: bool) -> FrameLabels:
     check_shape(points, "T N 3", name="points")
     check_like(points, model.bin_score, "points", owner="the labeler")
     if batch < 1:
         raise ValueError(f"batch: expected >= 1, got {batch}")
     visible = torch.isfinite(points).all(dim=2)
     out = torch.full(visible.shape, model.num_labels, dtype=torch.long, device=points.device)
+    shape = (*visible.shape, model.num_labels + 1) if keep_prob else (0, 0, 0)
+    prob = torch.zeros(shape, dtype=torch.float32, device=points.device)
     was_training = model.training
     model.eval()
     try:
@@ -611,8 +648,12 @@ def label_frames(model: Labeler, points: torch.Tensor, batch: int = 256) -> torc
             mask = vis.gather(1, order)
             pts = points[start : start + batch].gather(1, order[..., None].expand(-1, -1, 3))
             pts = torch.where(mask[..., None], pts, 0.0)
-            labels, _ = predict(model(pts, mask), mask)
+            plan = model(pts, mask)
+            labels, _ = predict(plan, mask)
             out[start : start + batch].scatter_(1, order, labels)
+            if keep_prob:
+                rows = torch.where(mask[..., None], plan[:, :-1].exp(), 0.0).float()
+                prob[start : start + batch].scatter_(1, order[..., None].expand(-1, -1, rows.shape[2]), rows)
     finally:
         model.train(was_training)
-    return out
+    return FrameLabels(out, prob)

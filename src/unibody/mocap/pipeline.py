@@ -9,10 +9,13 @@
 
 Labelled output: one column per model label (NaN where the label is absent in a frame),
 then the points left unlabelled as ``*0``, ``*1``, ... columns (one per input column that
-kept any). With ``tracklets`` each input column (a hardware tracklet) takes the majority
-label of its frames (paper 003 §4.5), else every frame is labelled on its own. With ``layout``
-the labels are then checked against a body solved from them (:func:`~unibody.mocap.relabel.relabel`):
-each point takes the solved marker it sits on, where that is clear.
+kept any). With ``tracklets`` each input column (a hardware tracklet) is labelled from the
+evidence of its frames, one label per span of it (:func:`~unibody.mocap.tracklets.settle_tracklets`,
+paper 003 §4.5), else every frame is labelled on its own. With ``layout`` the labels are then
+checked against a body solved from them (:func:`~unibody.mocap.relabel.relabel_tracklets` with
+tracklets: the body's labels are more evidence for the spans; :func:`~unibody.mocap.relabel.relabel`
+without: each point takes the solved marker it sits on, where that is clear). Copies of a
+point within 1 mm (:mod:`unibody.mocap.coincident`) are labelled as their original.
 
 A session whose markers go beyond a shipped layout (tracking clusters, foot sets) gets its own
 layout from one labelled frame (:func:`frame_layout`, paper §4.5: one labelled frame per layout
@@ -33,10 +36,11 @@ import numpy as np
 import torch
 
 from .c3d import MarkerSequence
+from .coincident import COINCIDENT_TOL, find_coincident
 from .frames import check_marker_units, lab_to_unibody
-from .labeler import Labeler, label_frames
+from .labeler import Labeler, frame_probabilities, label_frames
 from .layout import MarkerLayout
-from .tracklets import label_tracklets, labelled_markers
+from .tracklets import labelled_markers, settle_tracklets
 
 # Labelling never loads the solver: its modules are imported where a body is solved (the
 # functions below that solve, and label_sequence's body check).
@@ -77,6 +81,9 @@ class LabelReport:
             marker labels (the labeler took them for ghosts: another marker set, units or body?).
         far_points: points left unlabelled because they lie farther than ``FAR_RADIUS`` from their
             frame's main cluster (reflections, other subjects, absurd values).
+        copies: (copy, original) input column names: columns that copy another within
+            ``COINCIDENT_TOL`` (:mod:`unibody.mocap.coincident`), merged into their original.
+        coincident_points: other points merged into a point of their frame within ``COINCIDENT_TOL``.
     """
 
     frames: int
@@ -84,6 +91,8 @@ class LabelReport:
     scattered: np.ndarray
     rejected: np.ndarray
     far_points: int
+    copies: tuple[tuple[str, str], ...] = ()
+    coincident_points: int = 0
 
     @property
     def unlabelled(self) -> np.ndarray:
@@ -110,14 +119,29 @@ class LabelReport:
                 "were left unlabelled"
             )
             line = f"{line}; {far}" if line else far
+        merged = []
+        tol = f"{1000 * COINCIDENT_TOL:g} mm"
+        if self.copies:
+            pairs = ", ".join(f"{c}={o}" for c, o in self.copies)
+            merged.append(f"merged {len(self.copies)} columns that copy others within {tol} ({pairs})")
+        if self.coincident_points:
+            merged.append(f"merged {self.coincident_points} more points that coincide with another within {tol}")
+        if merged:
+            line = "; ".join([line, *merged]) if line else "; ".join(merged)
         return line
 
 
 @dataclass(frozen=True)
 class LabelledSequence(MarkerSequence):
-    """A :class:`MarkerSequence` from :func:`label_sequence`, with its :class:`LabelReport`."""
+    """A :class:`MarkerSequence` from :func:`label_sequence`, with its :class:`LabelReport`.
+
+    ``point_labels``: (T, N) int64, each input point's label in [0, L] (the model's label
+    order; L = null, also for absent points); a copy (:mod:`unibody.mocap.coincident`) has its
+    original's label.
+    """
 
     report: LabelReport | None = None
+    point_labels: np.ndarray | None = None
 
 
 def main_cluster(points: np.ndarray, radius: float = FAR_RADIUS) -> np.ndarray:
@@ -196,7 +220,8 @@ def label_sequence(
         seq: the input, in its lab frame (``up`` names its vertical axis).
         model: a trained labeler, on any device and in any dtype (the labels come back on the CPU).
         up: "z" or "y", the vertical axis of ``seq``.
-        tracklets: whether each input column takes its majority label.
+        tracklets: whether each input column's spans are labelled from their frames' evidence
+            (:func:`~unibody.mocap.tracklets.settle_tracklets`).
         batch: frames per forward pass.
         layout: the layout of the model's markers (the same labels, in order): check the labels
             against a body solved from them (:func:`~unibody.mocap.relabel.relabel`).
@@ -233,38 +258,51 @@ def label_sequence(
             f"({', '.join(model.label_names[:4])}, ...), got {len(layout)} ({', '.join(layout.labels[:4])}, ...)"
         )
     check_marker_units(seq.points, "seq")
-    visible = seq.visible
-    near = main_cluster(seq.points)
+    # Copies of a point (within 1 mm) are hidden from every step and take their original's label.
+    co = find_coincident(seq.points)
+    copy = co.copy
+    raw = np.where(copy[..., None], np.nan, seq.points)
+    visible = np.isfinite(raw).all(-1)
+    near = main_cluster(raw)
     far = visible & ~near
     # Far points (reflections, other subjects, absurd values) never reach the labeler or the body check.
-    pts = torch.as_tensor(lab_to_unibody(np.where(near[..., None], seq.points, np.nan), up=up))  # float64
-    frame = label_frames(model, pts.to(model.bin_score), batch=batch).cpu()  # (T, N), L = null; on the model's device
+    pts = torch.as_tensor(lab_to_unibody(np.where(near[..., None], raw, np.nan), up=up))  # float64
     null = model.num_labels
-    if tracklets:
-        frame = label_tracklets(frame, torch.from_numpy(visible), null)
-    frame = frame.masked_fill(torch.from_numpy(far), null)  # a tracklet's label never reaches its far frames
-    if layout is not None:
-        from .relabel import relabel
+    if not tracklets:
+        frame = label_frames(model, pts.to(model.bin_score), batch=batch).cpu()  # (T, N), L = null
+        if layout is not None:
+            from .relabel import relabel
 
-        frame, _ = relabel(pts, frame, layout, fps=seq.rate, config=body_config, progress=progress)
-    out = labelled_markers(torch.from_numpy(seq.points), frame, null).numpy()
+            frame, _ = relabel(pts, frame, layout, fps=seq.rate, config=body_config, progress=progress)
+    else:  # the columns' evidence over the sequence (far points: gaps)
+        prob = frame_probabilities(model, pts.to(model.bin_score), batch=batch).prob.cpu()
+        if layout is None:
+            frame = settle_tracklets(prob, torch.from_numpy(near))
+        else:
+            from .relabel import relabel_tracklets
+
+            frame, _ = relabel_tracklets(pts, prob, layout, fps=seq.rate, config=body_config, progress=progress)
+    out = labelled_markers(torch.from_numpy(raw), frame, null).numpy()
     left = visible & (frame == null).numpy()
     keep = np.nonzero(left.any(axis=0))[0]
-    rest = np.where(left[:, keep, None], seq.points[:, keep], np.nan)
+    rest = np.where(left[:, keep, None], raw[:, keep], np.nan)
     labels = (*model.label_names, *(f"*{i}" for i in range(len(keep))))
     points = np.concatenate([out, rest], axis=1)
     named = (visible & (frame != null).numpy()).sum(1)
     n_vis, n_near = visible.sum(1), near.sum(1)
+    point_labels = np.where(seq.visible, co.spread(np.where(visible, frame.numpy(), null)), null)
     report = LabelReport(
         frames=seq.num_frames,
         empty=np.flatnonzero(n_vis == 0),
         scattered=np.flatnonzero((n_vis > 0) & (n_near < MIN_LABELLED) & (named < MIN_LABELLED)),
         rejected=np.flatnonzero((n_near >= MIN_LABELLED) & (named < MIN_LABELLED)),
         far_points=int(far.sum()),
+        copies=tuple((seq.labels[c], seq.labels[o]) for c, o in co.columns),
+        coincident_points=co.frame_copies,
     )
     if progress is not None and (line := report.summary()):
         progress(line)
-    return LabelledSequence(points, labels, ("",) * len(labels), seq.rate, report)
+    return LabelledSequence(points, labels, ("",) * len(labels), seq.rate, report, point_labels.astype(np.int64))
 
 
 def solve_sequence(
