@@ -47,6 +47,8 @@ __all__ = [
     "FORMAT_VERSION",
     "IPCAState",
     "PCAIdentity",
+    "SPACES",
+    "asset_path",
     "default_asset_path",
     "ipca_finalize",
     "ipca_init",
@@ -57,6 +59,10 @@ __all__ = [
 
 FORMAT_VERSION = 1
 ASSET_NAME = "pca_v1.npz"
+SPACES: dict[str, str] = {"v1": "pca_v1.npz", "v2": "pca_v2.npz"}
+"""The shipped shape spaces by name (``unibody/identity/data/``). ``v1``, the default, is Anny's
+space (``scripts/build_pca.py``); ``v2`` is the broader one with every mesh's Hips placed at
+:data:`unibody.identity.shape_space.HIPS_M` (``scripts/build_shape_space.py``, docs/shape_spaces.md)."""
 _KEYS = ("format_version", "mean", "components", "components_lo", "std", "metadata")
 _EIG_RTOL = 1e-13  # ipca_update drops directions whose eigenvalue is below this fraction of the largest
 COEFF_BOUND = 10.0
@@ -80,6 +86,26 @@ sigma_0 in mesh norm (orthonormal basis: ``|c_k| sigma_k <= |x - mean|``), while
 def default_asset_path() -> Path:
     """The PCA asset shipped with unibody (``unibody/identity/data/pca_v1.npz``)."""
     return Path(str(resources.files("unibody.identity"))) / "data" / ASSET_NAME
+
+
+def asset_path(space: str | Path) -> Path:
+    """The file of a shape space: a shipped one by name (:data:`SPACES`), else ``space`` as a path.
+
+    Raises:
+        FileNotFoundError: a path that is not a file (the message lists the shipped names).
+        TypeError: ``space`` is neither a str nor a path.
+    """
+    if isinstance(space, str) and space in SPACES:
+        return Path(str(resources.files("unibody.identity"))) / "data" / SPACES[space]
+    if not isinstance(space, (str, Path)):
+        raise TypeError(f"space: expected a name ({', '.join(SPACES)}) or a path to a .npz, got {type(space).__name__}")
+    path = Path(space)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"space: no shape-space file at {path}; expected a shipped name ({', '.join(SPACES)}) or the path "
+            "of a .npz written by `unibody shape-space build`"
+        )
+    return path
 
 
 # --------------------------------------------------------------------------- asset file
@@ -135,7 +161,11 @@ def read_asset(path: str | Path) -> dict[str, np.ndarray]:
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"PCA asset: no file at {path}; rebuild it with: python scripts/build_pca.py")
+        raise FileNotFoundError(
+            f"PCA asset: no file at {path}; expected a shipped space's name ({', '.join(SPACES)}) or a .npz written "
+            "by `unibody shape-space build` (rebuild the shipped ones with python scripts/build_pca.py or "
+            "scripts/build_shape_space.py)"
+        )
     with np.load(path, allow_pickle=False) as data:
         missing = [k for k in _KEYS if k not in data.files]
         if missing:
@@ -238,13 +268,15 @@ class PCAIdentity(nn.Module):
 
     @classmethod
     def from_asset(
-        cls, path: str | Path | None = None, *, num_components: int = 128, dtype: torch.dtype = torch.float32
+        cls, path: str | Path | None = None, *, num_components: int | None = 128, dtype: torch.dtype = torch.float32
     ) -> PCAIdentity:
         """Load the shipped PCA (or the asset at ``path``), keeping the first ``num_components``.
 
         Args:
-            path: a PCA asset (:func:`write_asset` format); None for the shipped one.
-            num_components: K, how many leading components to keep, in [1, the asset's K].
+            path: a PCA asset (:func:`write_asset` format) or a shipped space's name
+                (:data:`SPACES`: "v1", "v2"); None for the default, v1.
+            num_components: K, how many leading components to keep, in [1, the asset's K];
+                None for all of them.
             dtype: the module's dtype (float32 or float64).
 
         Raises:
@@ -254,8 +286,12 @@ class PCAIdentity(nn.Module):
         """
         from ..assets import canonical_assets
 
-        a = read_asset(default_asset_path() if path is None else path)
+        if path is not None and not isinstance(path, (str, Path)):
+            raise TypeError(f"path: expected a space's name ({', '.join(SPACES)}) or a path, got {type(path).__name__}")
+        named = isinstance(path, str) and path in SPACES
+        a = read_asset(default_asset_path() if path is None else asset_path(path) if named else path)
         k = a["components"].shape[0]
+        num_components = k if num_components is None else num_components
         if isinstance(num_components, bool) or not isinstance(num_components, int) or not 1 <= num_components <= k:
             raise ValueError(f"num_components: expected an int in [1, {k}] (the asset's K), got {num_components!r}")
         canonical = canonical_assets()
