@@ -21,6 +21,8 @@ from ._common import EXIT_CODES, InputError, UsageError, _progress
 from .body_commands import _assets_info, run_demo, run_invert, run_pose
 from .convert_commands import add_convert_parser, run_convert
 from .mocap_commands import run_mocap_label, run_mocap_layout, run_mocap_solve
+from .shape_commands import add_shape_space_parser, run_shape_space
+from .view_commands import add_view_parser, run_view
 
 __all__ = ["EXIT_CODES", "InputError", "UsageError", "main"]
 
@@ -91,6 +93,8 @@ def _parser() -> argparse.ArgumentParser:
     lay.add_argument("--frame", type=int, default=0)
     lay.add_argument("--up", default="z", choices=("z", "y"))
     lay.add_argument("--prefix", default="X", help="name prefix of the file's other markers")
+    add_view_parser(sub, [writes])
+    add_shape_space_parser(sub, common, writes)
     return parser
 
 
@@ -106,6 +110,10 @@ def _run(args: argparse.Namespace) -> None:
         run_pose(args.motion, args.out, args.procedural, force)
     elif args.command == "convert":
         run_convert(args, force)
+    elif args.command == "view":
+        run_view(args, force)
+    elif args.command == "shape-space":
+        run_shape_space(args, force)
     elif args.mocap_command == "label":
         run_mocap_label(
             args.markers, args.out, args.model, args.up, not args.per_frame, args.retry, args.bf16, args.body,
