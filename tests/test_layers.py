@@ -19,7 +19,7 @@ FLOORS: tuple[tuple[str, ...], ...] = (
     ("viz",),
     ("assets", "rig", "joint_limits", "regions", "symmetry"),
     ("identity", "topology", "registration"),
-    ("skeleton", "procedural", "body", "motion"),
+    ("skeleton", "procedural", "body", "motion", "correctives"),
     ("fitting", "synth"),
     ("convert",),
     ("mocap", "occupancy", "panoman"),

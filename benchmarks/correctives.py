@@ -1,0 +1,217 @@
+"""Pose correctives (issue 40): plain LBS, LBS + procedural twist, the teacher and the correctives
+MLP (alone and with twist) on seeded stress poses x held-out identities.
+
+Measures (:mod:`unibody.correctives.metrics`): edge strain and dihedral change in the joint
+regions (mean, P95), limb-segment volume / rest, the smallest forearm cross-section / rest at a
+150 deg hand twist, self-intersecting triangle pairs (trunk and limbs; the first
+``--intersect-identities`` identities), the MLP against the teacher (mm), the change the MLP
+makes at small poses (every joint within 0.2 rad of the rest pose, and of the T-pose), and the
+cost of posing with correctives at batch 1 and 32 (float32, one thread, best of 5 x 20 calls).
+
+    OMP_NUM_THREADS=1 python benchmarks/correctives.py [--identities 10] [--png docs/correctives.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+from PIL import Image, ImageDraw
+
+from unibody import BodyLayer
+from unibody.correctives.metrics import SurfaceMeasures, limb_profile
+from unibody.correctives.model import Correctives
+from unibody.correctives.stress import forearm_twist_pose, stress_poses
+from unibody.correctives.training import TeacherSetup, draw_identities, teacher_targets
+from unibody.geometry.rotations import axis_angle_to_matrix
+from unibody.synth.poses import keyed_generator
+from unibody.viz.render import Camera, MeshSpec, render_image
+
+METHODS = ("LBS", "LBS + twist", "teacher", "MLP", "MLP + twist")
+
+
+def forearm_min_section(measures: SurfaceMeasures, rest, rest_joints, posed, joints) -> float:
+    """Smallest cross-section ratio posed / rest over 21 planes across the wrist half of the left forearm."""
+    names = measures.joint_names
+    a, b = names.index("LeftForeArm"), names.index("LeftHand")
+    sub = [a, b] + [i for i, n in enumerate(names) if n.startswith("LeftHand")]
+    w = measures.weights[:, sorted(set(sub))].sum(1) >= 0.5
+    faces = measures.faces[w[measures.faces].all(1)]
+    ts = np.linspace(0.5, 1.0, 21)
+    a0 = limb_profile(rest, faces, rest_joints[a], rest_joints[b], ts)
+    a1 = limb_profile(posed, faces, joints[a], joints[b], ts)
+    return float((a1 / a0).min())
+
+
+def small_poses(layer: BodyLayer, prepared, n: int, gen: torch.Generator, around_rest: bool) -> torch.Tensor:
+    """(n, 77, 3, 3) T-pose-relative poses with every joint within 0.2 rad of the rest pose (or of the T-pose)."""
+    delta = torch.randn(n, 77, 3, generator=gen)
+    delta = delta / delta.norm(dim=-1, keepdim=True) * 0.2 * torch.rand(n, 77, 1, generator=gen)
+    r = axis_angle_to_matrix(delta)
+    if not around_rest:
+        return r
+    rot = prepared.rest_rotations[0]
+    rest_local = rot[layer.parents[1:]].transpose(-1, -2) @ rot[1:]
+    return layer.to_relative(rest_local[None] @ r)
+
+
+def timing(layer: BodyLayer, prepared, pose: torch.Tensor, corr: bool) -> float:
+    """Best of 5 x 20 calls, ms."""
+    best = float("inf")
+    for _ in range(3):
+        layer.pose(prepared, pose, correctives=corr)
+    for _ in range(5):
+        t = time.perf_counter()
+        for _ in range(20):
+            layer.pose(prepared, pose, correctives=corr)
+        best = min(best, (time.perf_counter() - t) / 20 * 1e3)
+    return best
+
+
+def panel(verts, faces, centre, view, label, size=360) -> np.ndarray:
+    cam = Camera(tuple(centre + 0.9 * view), tuple(centre), fov_y=34.0)
+    img = render_image([MeshSpec(verts, faces, (0.80, 0.66, 0.58))], width=size, height=size, camera=cam, ground_y=None)
+    im = Image.fromarray(img)
+    ImageDraw.Draw(im).text((8, 6), label, fill=(20, 20, 20))
+    return np.asarray(im)
+
+
+def picture(layer: BodyLayer, path: str) -> None:
+    """Four stress poses of the mean body: LBS (top) vs correctives (bottom), close on the joint."""
+    prepared = layer.prepare_identity(torch.zeros(1, layer.identity.num_params))
+    poses, labels = stress_poses(torch.Generator().manual_seed(0), seeded=0)
+    picks = [("elbow 150 (left)", "LeftForeArm", (0.0, -0.3, 1.0)), ("knee 150 (left)", "LeftShin", (1.0, 0.0, 0.2)),
+             ("shoulder abduction 150 (left)", "LeftArm", (0.3, 0.2, 1.0)),
+             ("squat: hip 120 + knee 150 (left)", "LeftLeg", (1.0, 0.1, 0.3))]  # fmt: skip
+    faces = layer.faces.numpy()
+    rows = [[], []]
+    for label, joint, view in picks:
+        i = labels.index(label)
+        view = np.array(view) / np.linalg.norm(view)
+        for r, corr in enumerate((False, True)):
+            out = layer.pose(prepared, poses[i : i + 1], correctives=corr)
+            centre = out.joints[0, layer.joint_names.index(joint)].numpy()
+            tag = f"{label}: {'correctives' if corr else 'LBS'}"
+            rows[r].append(panel(out.vertices[0].numpy(), faces, centre, view, tag))
+    grid = np.concatenate([np.concatenate(row, 1) for row in rows], 0)
+    Image.fromarray(grid).save(path)
+    print(f"wrote {path}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--weights", default=None, help="correctives weights (default: the shipped ones)")
+    parser.add_argument("--identities", type=int, default=10)
+    parser.add_argument("--intersect-identities", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--png", default=None)
+    parser.add_argument("--sections", default="quality small speed", help="any of: quality small speed")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    model = Correctives.load(args.weights)
+    layer = BodyLayer.from_pca(correctives=model).to(args.device)
+    print(
+        f"correctives: {len(model.union)} vertices, {model.num_active} active joints; {model.meta.get('command', '')}"
+    )
+    if "quality" in args.sections:
+        quality(layer, model, args)
+    if "small" in args.sections:
+        gen = keyed_generator("correctives-small", args.seed)
+        coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-benchmark", args.seed))
+        for around_rest in (True, False):
+            change = []
+            for c in coeffs:
+                prepared = layer.prepare_identity(c[None])
+                pose = small_poses(layer, prepared, 16, gen, around_rest)
+                a = layer.pose(prepared, pose, correctives=False).vertices
+                b = layer.pose(prepared, pose).vertices
+                change.append((a - b).norm(dim=-1))
+            change = torch.stack(change) * 1e3
+            where = "rest pose" if around_rest else "T-pose"
+            print(f"small poses (every joint within 0.2 rad of the {where}): change mean {change.mean():.3f} mm "
+                  f"(per mesh max {change.mean(-1).max():.3f} mm), largest vertex {change.max():.2f} mm")  # fmt: skip
+    if "speed" in args.sections:
+        prepared = layer.prepare_identity(torch.zeros(1, layer.identity.num_params))
+        poses, _ = stress_poses(keyed_generator("correctives-stress", args.seed))
+        for b in (1, 32):
+            off, on = timing(layer, prepared, poses[:b], False), timing(layer, prepared, poses[:b], True)
+            print(f"pose(), float32, batch {b:2d}, {torch.get_num_threads()} thread(s): without {off:6.2f} ms, "
+                  f"with correctives {on:6.2f} ms (+{on / off - 1:.0%})")  # fmt: skip
+    if args.png:
+        picture(layer, args.png)
+
+
+def quality(layer: BodyLayer, model: Correctives, args: argparse.Namespace) -> None:
+    twist = BodyLayer.from_pca(procedural=True, correctives=model).to(args.device)
+    measures = SurfaceMeasures.from_layer(layer)
+    setup = TeacherSetup(layer)
+    coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-benchmark", args.seed))
+    poses, labels = stress_poses(keyed_generator("correctives-stress", args.seed))
+    acc = {m: {"strain": [], "dihedral": [], "volume": [], "isect": [], "section": []} for m in METHODS}
+    fit = []
+    t0 = time.perf_counter()
+    for n, c in enumerate(coeffs):
+        prepared = layer.prepare_identity(c[None])
+        _, teacher, _ = teacher_targets(layer, prepared, poses, setup)
+        tw_pose = forearm_twist_pose(150.0)
+        _, tw_teacher, _ = teacher_targets(layer, prepared, tw_pose, setup)
+        for m in METHODS:
+            lay = twist if "twist" in m else layer
+            corr = m.startswith("MLP")
+            out = lay.pose(prepared, poses, correctives=corr)
+            verts = teacher.float() if m == "teacher" else out.vertices
+            s, a = measures.distortion(prepared.rest_vertices, verts)
+            acc[m]["strain"].append(s.flatten())
+            acc[m]["dihedral"].append(a.flatten())
+            vol = measures.segment_volumes(
+                prepared.rest_vertices, prepared.rest_rotations, prepared.rest_joints, verts, out.transforms
+            )
+            acc[m]["volume"].append(vol)
+            if n < args.intersect_identities:
+                acc[m]["isect"].append(measures.self_intersections(verts))
+            tw = lay.pose(prepared, tw_pose, correctives=corr)
+            tv = tw_teacher[0].numpy() if m == "teacher" else tw.vertices[0].double().numpy()
+            acc[m]["section"].append(forearm_min_section(
+                measures, prepared.rest_vertices[0].double().numpy(), prepared.rest_joints[0].double().numpy(), tv,
+                tw.joints[0].double().numpy()))  # fmt: skip
+            if m == "MLP":
+                fit.append((out.vertices.double() - teacher).norm(dim=-1))
+        done = time.perf_counter() - t0
+        print(
+            f"  identity {n + 1}/{len(coeffs)} ({done:.0f} s, ETA {done / (n + 1) * (len(coeffs) - n - 1):.0f} s)",
+            flush=True,
+        )
+    print(f"\n{len(poses)} stress poses x {len(coeffs)} held-out identities (native PCA, stature 1.0-1.95 m); "
+          f"self-intersections over the first {min(args.intersect_identities, len(coeffs))} identities")  # fmt: skip
+    head = f"{'method':12s} | {'strain mean':>11s} {'P95':>6s} | {'dihedral mean':>13s} {'P95':>6s} | "
+    head += f"{'volume mean':>11s} {'min':>6s} | {'isect pairs/mesh':>16s} | {'forearm 150 min section':>23s}"
+    print(head)
+    base = {}
+    for m in METHODS:
+        s, a = torch.cat(acc[m]["strain"]), torch.cat(acc[m]["dihedral"])
+        vol = torch.cat(acc[m]["volume"])
+        isect = np.concatenate(acc[m]["isect"]) if acc[m]["isect"] else np.zeros(1)
+        sec = np.array(acc[m]["section"])
+        row = (float(s.mean()), float(s.quantile(0.95)), float(a.mean()), float(a.quantile(0.95)), float(vol.mean()),
+               float(vol.min()), float(isect.mean()), float(sec.min()))  # fmt: skip
+        base.setdefault("LBS", row)
+        print(f"{m:12s} | {row[0]:11.4f} {row[1]:6.4f} | {np.degrees(row[2]):11.2f} ° {np.degrees(row[3]):5.1f}° | "
+              f"{row[4]:11.1%} {row[5]:6.1%} | {row[6]:16.1f} | {row[7]:23.1%}")  # fmt: skip
+    print("\nreduction vs LBS (1 - method / LBS): strain mean, dihedral mean, intersections")
+    lbs = base["LBS"]
+    for m in METHODS[1:]:
+        s, a = torch.cat(acc[m]["strain"]), torch.cat(acc[m]["dihedral"])
+        isect = np.concatenate(acc[m]["isect"]) if acc[m]["isect"] else np.zeros(1)
+        print(f"  {m:12s} strain {1 - float(s.mean()) / lbs[0]:+.0%}, dihedral {1 - float(a.mean()) / lbs[2]:+.0%}, "
+              f"intersections {1 - float(isect.mean()) / max(lbs[6], 1e-9):+.0%}")  # fmt: skip
+    err = torch.stack(fit) * 1e3  # (identities, poses, V)
+    print(f"\nMLP vs teacher on the stress poses: mean {err.mean():.2f} mm, per-mesh max mean "
+          f"{err.amax(-1).mean():.1f} mm, max {err.max():.1f} mm")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
