@@ -54,6 +54,7 @@ from unibody import BodyLayer  # noqa: E402
 from unibody.fitting.inversion import PRESETS as INVERSION_PRESETS  # noqa: E402
 from unibody.fitting.inversion import PoseInverter  # noqa: E402
 from unibody.fitting.shape_fit import fit_identity  # noqa: E402
+from unibody.geometry.mesh import vertex_normals  # noqa: E402
 from unibody.identity import ENV_VARS, create  # noqa: E402
 from unibody.identity.pca import IPCAState, PCAIdentity, asset_path, ipca_finalize  # noqa: E402
 from unibody.identity.shape_space import AnnyRecipe, anny_params, to_bind_pose  # noqa: E402
@@ -343,6 +344,7 @@ def _fmt_row(cells: list[str]) -> str:
 def template_section(spaces: dict[str, Basis], rounds: int, controls: int) -> None:
     """The issue's table (and what it is made of) for each space."""
     layer = rig_layer()
+    layer_faces = Rig.canonical().faces
     inverter = PoseInverter(layer, INVERSION_PRESETS["analytic"])
     bodies = targets_.template_meshes()
     if controls:
@@ -358,7 +360,8 @@ def template_section(spaces: dict[str, Basis], rounds: int, controls: int) -> No
         "\n### Bodies from outside the training set: mean per-vertex error (mm) at k components\n"
         "\nprotocols: issue = registration, skeleton fit, repose to the bind pose, projection (as in issue 41); "
         "Hips placed = the same with the Hips moved to HIPS_M (to_bind_pose, how v2 was trained); "
-        "translation-free = Hips placed and the global translation free; "
+        "translation-free = Hips placed and the global translation free (normal part: the mean of |n . error| "
+        "along the body's vertex normals, what is left when sliding along the surface is not counted); "
         f"+ inversion = then {rounds} rounds of un-posing by pose inversion and projection\n"
     )
     print(f"| space | body | protocol | {ks} |\n|---|---|---|" + "---:|" * len(KS))
@@ -368,11 +371,13 @@ def template_section(spaces: dict[str, Basis], rounds: int, controls: int) -> No
             raw = [float(1e3 * e.norm(dim=-1).mean()) for e in residuals(basis, issue_placement(layer, m)).values()]
             placed_mesh = to_bind_pose(layer, m)
             placed = [float(1e3 * e.norm(dim=-1).mean()) for e in residuals(basis, placed_mesh).values()]
-            free = residuals(basis, placed_mesh, translation=True)
-            free = [float(1e3 * e.norm(dim=-1).mean()) for e in free.values()]
+            free_err = residuals(basis, placed_mesh, translation=True)
+            free = [float(1e3 * e.norm(dim=-1).mean()) for e in free_err.values()]
+            normals = vertex_normals(placed_mesh[0], layer_faces)
+            normal = [float(1e3 * (e[0] * normals).sum(-1).abs().mean()) for e in free_err.values()]
             inv = [float(e.mean()) for e in inverted_errors(basis, layer, inverter, mesh.double(), rounds).values()]
             protocols = (("issue", raw), ("Hips placed", placed), ("translation-free", free),
-                         (f"+ inversion ({rounds})", inv))  # fmt: skip
+                         ("translation-free, normal part", normal), (f"+ inversion ({rounds})", inv))  # fmt: skip
             for proto, vals in protocols:
                 print(_fmt_row([label, name, proto, *(f"{v:.2f}" for v in vals)]), flush=True)
     if controls:
@@ -439,9 +444,9 @@ def builder_spaces(identities: int) -> dict[str, tuple[Path, object]]:
     out = {}
     for label, specs in (("builder: generated SMPL", []), ("builder: Anny + generated SMPL", ["anny"])):
         sources = [source_from_spec(sp) for sp in specs] + [smpl]
-        path = TABLE5_DIR / ("smpl_only.npz" if not specs else "anny_smpl.npz")
+        n = identities if specs else max(identities // 8, 200)
+        path = TABLE5_DIR / (f"anny_smpl_{n}.npz" if specs else f"smpl_only_{n}.npz")
         if not path.is_file():
-            n = identities if specs else max(identities // 8, 200)
             print(f"building {label} ({n} identities; cached in {path})", flush=True)
             command = f"unibody shape-space build --from {' '.join([*specs, 'smpl=GENERATED'])}"
             build_shape_space(sources, path, identities=n, chunk=200, components=128 if specs else 20,
