@@ -34,7 +34,7 @@ def add_view_parser(sub, parents: list[argparse.ArgumentParser]) -> None:
     view.add_argument("--port", default="8080", help="port to serve on (the next free one if taken; 0: any)")
     view.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this machine only)")
     view.add_argument("--overlay", action="store_true", help="draw the files in one place, not side by side")
-    view.add_argument("--spacing", default="1.0", help="metres between files side by side (default 1.0)")
+    view.add_argument("--spacing", default="1.5", help="metres between files side by side (default 1.5)")
     view.add_argument("--solve", metavar="LAYOUT", help="C3D: solve the body from the labels (pig39, cmu41, ...)")
     view.add_argument("--up", default="z", choices=("z", "y"), help="C3D: vertical axis of the lab (default z)")
     view.add_argument("--record", type=Path, metavar="OUT", help="write OUT.mp4 or OUT.png frames; no server")

@@ -141,17 +141,20 @@ def body_from_motion(name: str, motion, layers: dict) -> LayerBody:
     return LayerBody(name, layer, params, motion.pose, motion.transl, motion.fps, _controls(layer, backend, params))
 
 
-def default_body(backend: str, layers: dict) -> SceneItem:
-    """One body of ``backend`` (``anny`` or ``pca``) in the T-pose, for the identity and pose panels."""
+def default_body(backend: str, layers: dict, params: np.ndarray | None = None) -> SceneItem:
+    """One body of ``backend`` (``anny`` or ``pca``) in the T-pose, for the identity and pose panels.
+
+    ``params``: its identity (default: Anny's average phenotypes, or the PCA mean).
+    """
     if backend not in ("anny", "pca"):
         raise InputError(f"--body: expected anny or pca, got {backend!r}")
     key = (backend, None)
     if key not in layers:
         layers[key] = _layer(backend, None)
     layer = layers[key]
-    params = (
-        np.array(_ANNY_DEFAULT, np.float32) if backend == "anny" else np.zeros(layer.identity.num_params, np.float32)
-    )
+    if params is None:
+        params = _ANNY_DEFAULT if backend == "anny" else np.zeros(layer.identity.num_params)
+    params = np.asarray(params, np.float32)
     pose, transl = np.zeros((1, 77, 3), np.float32), np.array([[0.0, 0.95, 0.0]], np.float32)
     body = LayerBody(backend, layer, params, pose, transl, 30.0, _controls(layer, backend, params))
     return SceneItem(backend, bodies=(body,))

@@ -72,7 +72,7 @@ class Viewer:
         host: str = "127.0.0.1",
         port: int = 8080,
         layout: Literal["side", "overlay"] = "side",
-        spacing: float = 1.0,
+        spacing: float = 1.5,
         max_rate: float | None = None,
     ) -> None:
         import viser
@@ -161,7 +161,10 @@ class Viewer:
         return _Body(source, mesh, skeleton, segments, offset)
 
     def _frame_camera(self) -> None:
-        pts = [b.mesh.vertices + b.offset for b in self._bodies]
+        pts = []
+        for b in self._bodies:  # the whole motion, not its first frame: a walk must stay in view
+            sample = np.unique(np.linspace(0, b.source.num_frames - 1, 5).astype(np.int64))
+            pts.append(b.source.frames(sample)[0].reshape(-1, 3)[::7] + b.offset)
         for m in self._markers:
             p = m.track.points.reshape(-1, 3)
             pts.append(p[np.isfinite(p).all(1)] + m.offset)
@@ -171,11 +174,14 @@ class Viewer:
         allp = np.concatenate(pts)
         lo, hi = allp.min(0), allp.max(0)
         centre = 0.5 * (lo + hi)
-        extent = float(max(hi[0] - lo[0], hi[1] - lo[1], 1.0))
-        dist = 0.5 * extent / math.tan(math.radians(30)) + 0.5 * float(hi[2] - lo[2]) + 0.5
         cam = self.server.initial_camera
+        # Fit the box's width and height in the view (viser's vertical field of view; a 16:9
+        # window less the GUI panel is about 1.4 wide), 15 % margin, from the front (+Z).
+        tan_y = math.tan(0.5 * float(cam.fov))
+        half = 0.5 * (hi - lo)
+        dist = 1.15 * max(half[1] / tan_y, half[0] / (1.4 * tan_y), 0.5) + half[2]
         cam.look_at = tuple(float(x) for x in centre)
-        cam.position = (float(centre[0]), float(centre[1] + 0.15 * dist), float(centre[2] + dist))
+        cam.position = (float(centre[0]), float(centre[1] + 0.25 * dist), float(centre[2] + dist))
 
     # ---------------------------------------------------------------- frames
 
@@ -245,10 +251,11 @@ class Viewer:
             h.text, h.position, h.visible = text, track.points[k, i], True
 
     def set_skeleton(self, on: bool) -> None:
-        """Show or hide the bones (drawn as lines over the mesh)."""
+        """Show or hide the bones; the mesh turns see-through while they show."""
         with self._lock:
             for b in self._bodies:
                 b.skeleton.visible = on
+                b.mesh.opacity = 0.45 if on else None
         self.show(self.frame, force=True)
 
     def set_mesh(self, on: bool) -> None:

@@ -62,7 +62,7 @@ def render_frames(
     turntable: float | None = None,
     width: int = 960,
     height: int = 540,
-    spacing: float = 1.0,
+    spacing: float = 1.5,
     overlay: bool = False,
     supersample: int = 1,
 ) -> Iterator[np.ndarray]:
