@@ -12,7 +12,13 @@ one matrix product (~11x faster than Anny + topology transfer at batch 1 on one 
     out = layer(torch.zeros(1, 128), torch.zeros(1, 77, 3))  # the mean shape in the T-pose
     coeffs = pca.project(meshes, 32)                       # (B, 32), bind-pose canonical meshes
 
-The shipped basis (``data/pca_v1.npz``) is built by ``scripts/build_pca.py`` from seeded
+Two spaces ship (:data:`SPACES`, loaded by name or any asset by path: ``from_asset("v2")``,
+``BodyLayer.from_pca("v2")``): ``v1``, the default, described below, and ``v2``, a broader
+Anny space with every mesh's Hips placed at a fixed point (``scripts/build_shape_space.py``,
+:mod:`unibody.identity.shape_space`, which also builds spaces from a user's SMPL / MHR /
+GarmentMeasurements files; docs/shape_spaces.md).
+
+The default basis (``data/pca_v1.npz``) is built by ``scripts/build_pca.py`` from seeded
 Anny identities reposed to the bind pose and mirror-augmented; its recipe is in the asset
 (:attr:`PCAIdentity.metadata`). On 200 held-out Anny identities of the same distribution its
 128 components reconstruct the meshes to 0.41 mm mean per-vertex error (1.45 mm at 32,
