@@ -7,7 +7,7 @@
 Needs Debian's chromium and chromium-driver, selenium and viser (the README's install), and the
 data under ../shared (CMU BVH and the evaluation C3D files).
 
-    python benchmarks/viewer_screenshots.py [--out docs] [--shared ../shared] [--seed 0]
+    python benchmarks/viewer_screenshots.py [--out docs] [--shared ../shared] [--only motion|mocap|identity]
 """
 
 from __future__ import annotations
@@ -53,25 +53,15 @@ def _shoot(viewer, out: Path, setup=None, width: int = 1400, height: int = 800, 
     print(f"wrote {out}")
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", type=Path, default=Path("docs"))
-    ap.add_argument("--shared", type=Path, default=Path("../shared"))
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--device", default="cpu")
-    args = ap.parse_args()
-    torch.manual_seed(args.seed)
-    from unibody.cli.view_sources import default_body, load_item
+def _motion(args, layers: dict) -> None:
+    from unibody.cli.view_sources import load_item
     from unibody.viz.viewer.app import Viewer
-    from unibody.viz.viewer.tracks import SceneItem
 
-    layers: dict = {}
     bvh = args.shared / "motions/cmu/bvh"
     walks = [next(bvh.rglob(name)) for name in ("02_01.bvh", "02_02.bvh")]
-    items = [load_item(p, layers) for p in walks]
-    with Viewer(items, port=0, spacing=1.2) as viewer:
+    with Viewer([load_item(p, layers) for p in walks], port=0, spacing=1.2) as viewer:
 
-        def motion(v):
+        def setup(v):
             v.gui.skeleton.value = True
             v.gui.frame.value = 150
             joints = [b.frames(np.array([150]))[1][0, 1] + [1.2 * i, 0, 0] for i, b in enumerate(v.bodies)]
@@ -80,12 +70,17 @@ def main() -> None:
                 client.camera.look_at = centre
                 client.camera.position = centre + np.array([0.8, 0.5, 3.0])
 
-        _shoot(viewer, args.out / "viewer_motion.png", motion)
+        _shoot(viewer, args.out / "viewer_motion.png", setup)
+
+
+def _mocap(args, layers: dict) -> None:
+    from unibody.cli.view_sources import load_item
+    from unibody.viz.viewer.app import Viewer
 
     take = args.shared / "evaldata/c3d/btkdata_PiG_Motion-FlatFoot-Full.c3d"
     with Viewer([load_item(take, layers, solve="pig35")], port=0) as viewer:
 
-        def mocap(v):
+        def setup(v):
             v.gui.frame.value = 120
             v.gui.marker_names.value = True
             pts = v.items[0].markers[0].points[120]
@@ -94,15 +89,36 @@ def main() -> None:
                 client.camera.look_at = centre
                 client.camera.position = centre + np.array([1.2, 0.3, 1.6])
 
-        _shoot(viewer, args.out / "viewer_mocap.png", mocap)
+        _shoot(viewer, args.out / "viewer_mocap.png", setup)
 
-    bodies = []
+
+def _identity(args, layers: dict) -> None:
+    from unibody.cli.view_sources import default_body
+    from unibody.viz.viewer.app import Viewer
+    from unibody.viz.viewer.tracks import SceneItem
+
+    items = []
     for age in np.linspace(0.0, 1.0, 5):
         (body,) = default_body("anny", layers, np.array([0.5, age, 0.5, 0.5, 0.5, 0.5])).bodies
         body.name = f"age {age:.2f}"
-        bodies.append(SceneItem(body.name, bodies=(body,)))
-    with Viewer(bodies, port=0, spacing=1.75) as viewer:
+        items.append(SceneItem(body.name, bodies=(body,)))
+    with Viewer(items, port=0, spacing=1.75) as viewer:
         _shoot(viewer, args.out / "viewer_identity.png")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("docs"))
+    ap.add_argument("--shared", type=Path, default=Path("../shared"))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--only", choices=("motion", "mocap", "identity"), help="make one picture only")
+    args = ap.parse_args()
+    torch.manual_seed(args.seed)
+    layers: dict = {}
+    for name, make in (("motion", _motion), ("mocap", _mocap), ("identity", _identity)):
+        if args.only in (None, name):
+            make(args, layers)
 
 
 if __name__ == "__main__":
