@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import torch
 
+from unibody.cli import main
 from unibody.viz.viewer.tracks import (
     GHOST,
     GHOST_COLOR,
@@ -195,15 +196,6 @@ def test_identity_and_pose_panels_repose_the_body(pca_body):
 
 
 # --------------------------------------------------------------------------- command line
-
-
-def main(argv: list[str]) -> int:
-    from unibody.cli import _parser
-    from unibody.cli import main as cli_main
-
-    if "view" not in _parser()._subparsers._group_actions[0].choices:
-        pytest.skip("`unibody view` is not registered in unibody.cli yet")
-    return cli_main(argv)
 
 
 def test_view_unreadable_file_is_one_line(tmp_path, capsys):
@@ -413,3 +405,20 @@ def test_record_reads_a_marker_take(tmp_path):
     np.testing.assert_allclose(track.points[0, 0], [0.0, 1.0, 0.0])  # Z-up lab -> Y up
     (img,) = list(render_frames([item], fps=1, width=200, height=160))
     assert _near(img.astype(np.int64), marker_color("LFHD"), 60).sum() >= 2
+
+
+def test_mesh_sequences_show_their_own_meshes(tmp_path):
+    from unibody.cli._common import InputError
+    from unibody.cli.view_sources import load_item
+
+    box = BoxBody(num_frames=4)
+    verts = box.frames(np.arange(4))[0]
+    path = tmp_path / "boxes.npz"
+    np.savez(path, vertices=verts, topology=np.array("box"), faces=box.faces.astype(np.int64), fps=np.array(60.0))
+    (body,) = load_item(path, {}).bodies
+    assert body.num_frames == 4 and body.fps == 60.0
+    np.testing.assert_array_equal(body.frames(np.array([2]))[0][0], verts[2])
+    bare = tmp_path / "bare.npz"
+    np.savez(bare, vertices=verts, topology=np.array("box"))
+    with pytest.raises(InputError, match="bare.npz: a 'box' mesh sequence without a faces field"):
+        load_item(bare, {})
