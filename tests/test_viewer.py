@@ -422,3 +422,59 @@ def test_mesh_sequences_show_their_own_meshes(tmp_path):
     np.savez(bare, vertices=verts, topology=np.array("box"))
     with pytest.raises(InputError, match="bare.npz: a 'box' mesh sequence without a faces field"):
         load_item(bare, {})
+
+
+class TwoBoxes(BoxBody):
+    """Two boxes: the second starts inside the first and slides 10 cm a frame out along +X."""
+
+    def frames(self, index):
+        one, joints = BoxBody.frames(self, np.zeros(len(np.asarray(index)), np.int64))
+        two = one + np.array([0.2, 0.3, 0.0], np.float32)
+        two[:, :, 0] += 0.1 * np.asarray(index, np.float32)[:, None]
+        return np.concatenate([one, two], 1), joints
+
+    def __init__(self) -> None:
+        super().__init__(num_frames=8)
+        self.faces = np.concatenate([self.faces, self.faces + 8]).astype(np.uint32)
+
+
+@needs_viser
+def test_self_intersections_are_drawn_in_red_when_paused():
+    from unibody.viz.viewer.app import Viewer
+
+    with Viewer([SceneItem("boxes", bodies=(TwoBoxes(),))], port=0) as viewer:
+        body = viewer._bodies[0]
+        viewer.gui.intersections.value = True
+        # Frame 0: the second box cuts the first one's top and side faces (and they cut it).
+        assert body.num_hits >= 4 and body.hits.visible
+        assert len(body.hits.faces) == body.num_hits
+        assert tuple(body.hits.color) == (230, 20, 20)
+        np.testing.assert_array_equal(body.hits.vertices, body.mesh.vertices)
+        viewer.show(7)  # 0.9 m further: apart
+        assert body.num_hits == 0 and not body.hits.visible
+        viewer.show(0)
+        viewer.play()
+        viewer.show(1)  # while playing the exact test is skipped
+        assert not body.hits.visible
+        viewer.play(False)  # pausing draws them for the frame shown
+        assert body.hits.visible == (body.num_hits > 0)
+        viewer.gui.intersections.value = False
+        assert not body.hits.visible
+
+
+@pytest.mark.slow
+def test_resolve_moves_an_arm_out_of_the_chest(pca_body):
+    from unibody.cli.view_sources import LayerBody, resolved_item
+    from unibody.geometry.intersect import intersecting_pairs
+    from unibody.rig import joint_index
+
+    pose = np.zeros((1, 77, 3), np.float32)
+    pose[0, joint_index("LeftArm") - 1] = [0.0, 0.0, -1.75]  # the upper arm into the chest
+    pose[0, joint_index("LeftForeArm") - 1] = [0.0, -1.5, 0.0]
+    transl = np.array([[0.0, 0.95, 0.0]], np.float32)
+    body = LayerBody("arm", pca_body.layer, np.zeros(16, np.float32), pose, transl, 30.0, None)
+    (fixed,) = resolved_item(SceneItem("arm", bodies=(body,))).bodies
+    faces = torch.from_numpy(body.faces.astype(np.int64))
+    count = [len(intersecting_pairs(torch.from_numpy(b.frames([0])[0][0]), faces)) for b in (body, fixed)]
+    assert count[1] < 0.85 * count[0]
+    assert fixed.name == "arm (resolved)"

@@ -37,6 +37,9 @@ def add_view_parser(sub, parents: list[argparse.ArgumentParser]) -> None:
     view.add_argument("--spacing", default="1.5", help="metres between files side by side (default 1.5)")
     view.add_argument("--solve", metavar="LAYOUT", help="C3D: solve the body from the labels (pig39, cmu41, ...)")
     view.add_argument("--up", default="z", choices=("z", "y"), help="C3D: vertical axis of the lab (default z)")
+    view.add_argument(
+        "--resolve", action="store_true", help="also show each motion moved out of self-intersection (~1 s a frame)"
+    )
     view.add_argument("--record", type=Path, metavar="OUT", help="write OUT.mp4 or OUT.png frames; no server")
     view.add_argument("--turntable", metavar="SECONDS", help="--record: one turn of the camera around frame 0")
     view.add_argument("--fps", default="30", help="--record: frames per second (default 30)")
@@ -68,12 +71,14 @@ def _port(value: str) -> int:
 
 
 def _items(args: argparse.Namespace) -> list:
-    from .view_sources import default_body, load_item
+    from .view_sources import default_body, load_item, resolved_item
 
     layers: dict = {}
     items = [load_item(path, layers, solve=args.solve, up=args.up) for path in args.files]
     if args.body or not items:
         items.append(default_body(args.body or "anny", layers))
+    if args.resolve:
+        items = [x for item in items for x in (item, resolved_item(item, lambda line: _progress("  " + line))) if x]
     return items
 
 

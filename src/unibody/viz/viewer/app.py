@@ -40,6 +40,8 @@ class _Body:
     names: list = field(default_factory=list)  # viser LabelHandles, made on demand
     shown: int = -1
     joints: np.ndarray | None = None
+    hits: object | None = None  # viser MeshHandle of the self-intersecting triangles, made on demand
+    num_hits: int = 0  # self-intersecting triangles of the frame shown (when they are asked for)
 
 
 @dataclass
@@ -96,6 +98,7 @@ class Viewer:
         self.loop = True
         self.show_names = False
         self.show_marker_names = False
+        self.show_intersections = False
         self._clock = 0.0
         self._period = 1.0 / float(max_rate or self.fps)
         self._bodies: list[_Body] = []
@@ -207,6 +210,38 @@ class Viewer:
             b.skeleton.points = joints[0][b.segments]
         if self.show_names:
             self._place_names(b)
+        if self.show_intersections:
+            self._place_hits(b, verts[0])
+
+    def _place_hits(self, b: _Body, verts: np.ndarray) -> None:
+        """Draw the triangles of ``verts`` that cut another triangle of the mesh, in red.
+
+        Exact triangle tests (:func:`unibody.geometry.intersect.intersecting_pairs`, ~0.7 s for
+        the canonical mesh on one core), so they are skipped while playing and drawn on pause.
+        """
+        if self.playing:
+            if b.hits is not None:
+                b.hits.visible = False
+            return
+        import torch
+
+        from ...geometry.intersect import intersecting_pairs
+
+        faces = np.asarray(b.source.faces, np.int64)
+        pairs = intersecting_pairs(torch.from_numpy(np.asarray(verts, np.float64)), torch.from_numpy(faces))
+        hit = np.unique(pairs.numpy().reshape(-1))
+        b.num_hits = len(hit)
+        if b.hits is None:
+            name = f"{b.mesh.name}/hits"  # type: ignore[attr-defined]
+            b.hits = self.server.scene.add_mesh_simple(
+                name, verts, faces[:1].astype(np.uint32), color=(230, 20, 20), side="double", visible=False
+            )
+        if not len(hit):
+            b.hits.visible = False
+            return
+        b.hits.vertices = verts
+        b.hits.faces = faces[hit].astype(np.uint32)
+        b.hits.visible = True
 
     def _place_names(self, b: _Body) -> None:
         scene = self.server.scene
@@ -282,6 +317,16 @@ class Viewer:
         if on:
             self.show(self.frame, force=True)
 
+    def set_intersections(self, on: bool) -> None:
+        """Show or hide the self-intersecting triangles (computed for the frame shown, when paused)."""
+        with self._lock:
+            self.show_intersections = on
+            for b in self._bodies:
+                if b.hits is not None:
+                    b.hits.visible = False
+        if on:
+            self.show(self.frame, force=True)
+
     def refresh(self, body: BodySource | None = None) -> None:
         """Ask ``body`` (every body when None) for its frame again: its identity or pose changed."""
         with self._lock:
@@ -297,7 +342,10 @@ class Viewer:
             if on and not self.playing:
                 self._clock = self.frame / self.fps
                 self._last = time.perf_counter()
+            paused = self.playing and not on
             self.playing = on
+        if paused and self.show_intersections:
+            self.show(self.frame, force=True)
 
     def seek(self, frame: int) -> None:
         """Show ``frame`` and continue playing from there."""

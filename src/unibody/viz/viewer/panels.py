@@ -32,6 +32,7 @@ class Panels:
     skeleton: object
     joint_names: object
     marker_names: object
+    intersections: object
     body: object | None = None
     identity: list = field(default_factory=list)
     joint: object | None = None
@@ -52,7 +53,10 @@ def build_panels(viewer: Viewer) -> Panels:
         skeleton = gui.add_checkbox("Skeleton", initial_value=False)
         joint_names = gui.add_checkbox("Joint names", initial_value=False)
         marker_names = gui.add_checkbox("Marker names", initial_value=False)
-    panels = Panels(play, frame, speed, loop, mesh, skeleton, joint_names, marker_names)
+        intersections = gui.add_checkbox(
+            "Self-intersections", initial_value=False, hint="triangles that cut the body, in red (drawn when paused)"
+        )
+    panels = Panels(play, frame, speed, loop, mesh, skeleton, joint_names, marker_names, intersections)
 
     @play.on_click
     def _(_) -> None:
@@ -70,6 +74,7 @@ def build_panels(viewer: Viewer) -> Panels:
     skeleton.on_update(lambda _: viewer.set_skeleton(bool(skeleton.value)))
     joint_names.on_update(lambda _: viewer.set_joint_names(bool(joint_names.value)))
     marker_names.on_update(lambda _: viewer.set_marker_names(bool(marker_names.value)))
+    intersections.on_update(lambda _: viewer.set_intersections(bool(intersections.value)))
     if viewer.bodies:
         _edit_panels(viewer, panels)
     return panels
