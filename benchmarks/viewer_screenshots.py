@@ -3,11 +3,13 @@
   viewer_motion.png     two CMU walks (BVH, converted on load) side by side, skeleton on
   viewer_mocap.png      a Plug-in Gait take (BTKData walk) with its solved body and marker names
   viewer_identity.png   an identity sweep: five Anny bodies, age 0 -> 1 (the other phenotypes at 0.5)
+  viewer_resolve.png    a PCA body with its upper arm in the chest, before and after
+                        resolve_self_intersections, self-intersecting triangles in red
 
 Needs Debian's chromium and chromium-driver, selenium and viser (the README's install), and the
 data under ../shared (CMU BVH and the evaluation C3D files).
 
-    python benchmarks/viewer_screenshots.py [--out docs] [--shared ../shared] [--only motion|mocap|identity]
+    python benchmarks/viewer_screenshots.py [--out docs] [--shared ../shared] [--only motion|mocap|identity|resolve]
 """
 
 from __future__ import annotations
@@ -106,17 +108,41 @@ def _identity(args, layers: dict) -> None:
         _shoot(viewer, args.out / "viewer_identity.png")
 
 
+def _resolve(args, layers: dict) -> None:
+    from unibody.body import BodyLayer
+    from unibody.cli.view_sources import LayerBody, resolved_item
+    from unibody.rig import joint_index
+    from unibody.viz.viewer.app import Viewer
+    from unibody.viz.viewer.tracks import SceneItem
+
+    pose = np.zeros((1, 77, 3), np.float32)
+    pose[0, joint_index("LeftArm") - 1] = [0.0, 0.0, -1.75]  # the upper arm into the chest
+    pose[0, joint_index("LeftForeArm") - 1] = [0.0, -1.5, 0.0]
+    layer = BodyLayer.from_pca(num_components=16)
+    body = LayerBody("arm in chest", layer, np.zeros(16), pose, np.array([[0.0, 0.95, 0.0]]), 30.0, None)
+    item = SceneItem(body.name, bodies=(body,))
+    with Viewer([item, resolved_item(item)], port=0, spacing=1.2) as viewer:
+
+        def setup(v):
+            v.gui.intersections.value = True
+            for client in v.server.get_clients().values():
+                client.camera.look_at = np.array([0.6, 1.2, 0.0])
+                client.camera.position = np.array([0.9, 1.6, 2.6])
+
+        _shoot(viewer, args.out / "viewer_resolve.png", setup)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("docs"))
     ap.add_argument("--shared", type=Path, default=Path("../shared"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--only", choices=("motion", "mocap", "identity"), help="make one picture only")
+    ap.add_argument("--only", choices=("motion", "mocap", "identity", "resolve"), help="make one picture only")
     args = ap.parse_args()
     torch.manual_seed(args.seed)
     layers: dict = {}
-    for name, make in (("motion", _motion), ("mocap", _mocap), ("identity", _identity)):
+    for name, make in (("motion", _motion), ("mocap", _mocap), ("identity", _identity), ("resolve", _resolve)):
         if args.only in (None, name):
             make(args, layers)
 
