@@ -215,6 +215,12 @@ def test_view_bad_arguments(tmp_path, capsys):
     assert "--record: expected a .mp4 or .png file" in capsys.readouterr().err
     assert main(["view", "--record", str(tmp_path / "x.png"), "--size", "big"]) == 2
     assert main(["view", "--turntable", "3"]) == 2
+    take = tmp_path / "take.npz"
+    from unibody.mocap.c3d import MarkerSequence, write_npz
+
+    write_npz(take, MarkerSequence(np.zeros((2, 1, 3)), ("LFHD",), ("",), 100.0))
+    assert main(["view", str(take), "--solve", "pig99", "--record", str(tmp_path / "x.png")]) == 2
+    assert "--solve: layout: unknown layout 'pig99'" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------- recording

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from ..viz.viewer.tracks import GHOST, LABELLED, UNLABELLED, IdentityControls, MarkerTrack, SceneItem
-from ._common import InputError, _about, _read
+from ._common import InputError, UsageError, _about, _read
 
 __all__ = ["LayerBody", "default_body", "load_item", "resolved_item"]
 
@@ -218,7 +218,10 @@ def marker_item(path: Path, layers: dict, solve: str | None, up: str) -> SceneIt
         from ..mocap.layout import MarkerLayout
         from ..mocap.pipeline import solve_sequence
 
-        layout = MarkerLayout.load(solve)
+        try:
+            layout = MarkerLayout.load(solve)
+        except (ValueError, OSError) as err:
+            raise UsageError(f"--solve: {err}") from None
         with _about(path):
             result = solve_sequence(seq, layout, up=up)
         motion = result.to_motion(seq.rate)
