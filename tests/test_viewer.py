@@ -487,3 +487,20 @@ def test_resolve_moves_an_arm_out_of_the_chest(pca_body):
     count = [len(intersecting_pairs(torch.from_numpy(b.frames([0])[0][0]), faces)) for b in (body, fixed)]
     assert count[1] < 0.85 * count[0]
     assert fixed.name == "arm (resolved)"
+
+
+@needs_viser
+def test_a_click_on_the_body_picks_the_joint_nearest_the_ray(pca_body):
+    from types import SimpleNamespace
+
+    from unibody.rig import joint_index
+    from unibody.viz.viewer.app import Viewer
+
+    with Viewer([SceneItem("box", bodies=(BoxBody(),)), SceneItem("pca", bodies=(pca_body,))], port=0) as viewer:
+        body = viewer._bodies[1]
+        for name in ("Head", "LeftForeArm", "RightFoot"):
+            target = body.joints[joint_index(name)] + body.offset  # world: the item sits 1.5 m along +X
+            click = SimpleNamespace(ray_origin=tuple(target + [0.3, 0.2, 3.0]), ray_direction=(-0.3, -0.2, -3.0))
+            body.mesh._impl.click_cb[0].callback(click)
+            assert viewer.gui.joint.value == name
+            assert viewer.gui.body.value == "1: pca"

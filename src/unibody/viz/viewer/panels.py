@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .tracks import nearest_joint
+
 if TYPE_CHECKING:
     from .app import Viewer
     from .tracks import BodySource
@@ -116,7 +118,8 @@ def _edit_panels(viewer: Viewer, panels: Panels) -> None:
             panels.identity.append(gui.add_slider(f"p{k}", min=0.0, max=1.0, step=0.01, initial_value=0.5))
         reset = gui.add_button("Reset identity")
     with gui.add_folder("Pose"):
-        names = list(bodies[0].joint_names[1:])
+        # The rig's names (a body of stored meshes has none: its joint edits do nothing).
+        names = list(max((b.joint_names for b in bodies), key=len)[1:]) or ["(no joints)"]
         panels.joint = gui.add_dropdown("Joint", names, initial_value=names[0])
         for axis in "xyz":
             panels.rotation.append(gui.add_slider(f"Rotate {axis} (deg)", min=-180, max=180, step=1, initial_value=0))
@@ -190,5 +193,20 @@ def _edit_panels(viewer: Viewer, panels: Panels) -> None:
             state["body"] = labels.index(str(panels.body.value))
             load_identity()
             load_rotation()
+
+    def pick(i: int, event) -> None:
+        """A click on body ``i`` picks it and the joint nearest the click's ray for the Pose panel."""
+        b = viewer._bodies[i]
+        if b.joints is None or len(b.joints) != len(names) + 1:
+            return
+        j = nearest_joint(b.joints + b.offset, np.asarray(event.ray_origin), np.asarray(event.ray_direction))
+        if panels.body is not None:
+            panels.body.value = labels[i]
+        state["body"] = i
+        panels.joint.value = names[j - 1]
+        load_rotation()
+
+    for i, b in enumerate(viewer._bodies):
+        b.mesh.on_click(lambda event, i=i: pick(i, event))
 
     load_identity()

@@ -27,6 +27,7 @@ __all__ = [
     "MarkerTrack",
     "SceneItem",
     "local_frame",
+    "nearest_joint",
     "marker_color",
     "marker_colors",
 ]
@@ -43,6 +44,15 @@ BODY_COLORS = ((217, 140, 115), (115, 153, 217), (242, 191, 89), (153, 191, 140)
 def local_frame(g: int, master_fps: float, fps: float, n: int) -> int:
     """The frame of a track of ``n`` frames at ``fps`` shown at frame ``g`` of a ``master_fps`` timeline."""
     return min(max(int(g * fps / master_fps + 1e-6), 0), n - 1)
+
+
+def nearest_joint(joints: np.ndarray, origin: np.ndarray, direction: np.ndarray) -> int:
+    """The joint (1..J-1, never the Root) closest to the ray ``origin + t direction``, t >= 0."""
+    d = np.asarray(direction, np.float64)
+    d = d / max(float(np.linalg.norm(d)), 1e-12)
+    rel = np.asarray(joints, np.float64)[1:] - np.asarray(origin, np.float64)
+    t = np.clip(rel @ d, 0.0, None)
+    return 1 + int(np.argmin(np.linalg.norm(rel - t[:, None] * d, axis=1)))
 
 
 def marker_color(label: str) -> tuple[int, int, int]:
