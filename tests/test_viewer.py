@@ -504,3 +504,16 @@ def test_a_click_on_the_body_picks_the_joint_nearest_the_ray(pca_body):
             body.mesh._impl.click_cb[0].callback(click)
             assert viewer.gui.joint.value == name
             assert viewer.gui.body.value == "1: pca"
+
+
+@pytest.mark.slow
+def test_panoman_fit_is_shown_with_its_handles(pca_body):
+    from unibody.cli.view_sources import panoman_item
+
+    item = panoman_item(SceneItem("pca", bodies=(pca_body,)), 3)
+    (fit,), (handles,) = item.bodies, item.markers
+    target = pca_body.frames(np.array([3]))[0][0]
+    assert fit.num_frames == 1 and handles.points.shape == (1, 21, 3)
+    np.testing.assert_allclose(handles.points[0], target[::900], atol=1e-6)  # the handles sit on the body
+    assert np.nanmean(handles.residual) < 0.02  # and the fit reaches them (m)
+    assert np.abs(fit.frames(np.array([0]))[0][0] - target).mean() < 0.03

@@ -40,6 +40,9 @@ def add_view_parser(sub, parents: list[argparse.ArgumentParser]) -> None:
     view.add_argument(
         "--resolve", action="store_true", help="also show each motion moved out of self-intersection (~1 s a frame)"
     )
+    view.add_argument(
+        "--panoman", metavar="FRAME", help="also show a PanoMan fit of each motion's FRAME with its handles (~20 s)"
+    )
     view.add_argument("--record", type=Path, metavar="OUT", help="write OUT.mp4 or OUT.png frames; no server")
     view.add_argument("--turntable", metavar="SECONDS", help="--record: one turn of the camera around frame 0")
     view.add_argument("--fps", default="30", help="--record: frames per second (default 30)")
@@ -71,15 +74,21 @@ def _port(value: str) -> int:
 
 
 def _items(args: argparse.Namespace) -> list:
-    from .view_sources import default_body, load_item, resolved_item
+    from .view_sources import default_body, load_item, panoman_item, resolved_item
 
     layers: dict = {}
     items = [load_item(path, layers, solve=args.solve, up=args.up) for path in args.files]
     if args.body or not items:
         items.append(default_body(args.body or "anny", layers))
-    if args.resolve:
-        items = [x for item in items for x in (item, resolved_item(item, lambda line: _progress("  " + line))) if x]
-    return items
+    frame = None if args.panoman is None else _number(args.panoman, "--panoman", "a frame number", -1, True)
+    out = []
+    for item in items:  # each file, then what is derived from it
+        out.append(item)
+        if args.resolve:
+            out.append(resolved_item(item, lambda line: _progress("  " + line)))
+        if frame is not None:
+            out.append(panoman_item(item, int(frame), lambda line: _progress("  " + line)))
+    return [x for x in out if x is not None]
 
 
 def run_view(args: argparse.Namespace, force: bool = False) -> None:
