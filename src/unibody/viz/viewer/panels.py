@@ -98,115 +98,123 @@ class _Quiet:
 
 
 def _edit_panels(viewer: Viewer, panels: Panels) -> None:
-    gui = viewer.server.gui
-    bodies = viewer.bodies
-    labels = [f"{i}: {b.name}" for i, b in enumerate(bodies)]
-    quiet = _Quiet()
-    edits: dict[tuple[int, int], np.ndarray] = {}
-    values: dict[int, np.ndarray] = {}  # identity values set by the sliders, per body
-    state = {"body": 0}
+    """The Identity and Pose folders, and picking a body and joint by clicking it."""
+    edit = _Edits(viewer, panels)
+    for s in panels.identity:
+        s.on_update(edit.on_identity)
+    for s in panels.rotation:
+        s.on_update(edit.on_rotation)
+    panels.joint.on_update(lambda _: edit.load_rotation())
+    edit.reset.on_click(lambda _: edit.reset_identity())
+    edit.reset_pose.on_click(lambda _: edit.reset_joint())
+    if panels.body is not None:
+        panels.body.on_update(lambda _: edit.select(edit.labels.index(str(panels.body.value))))
+    for i, b in enumerate(viewer._bodies):
+        b.mesh.on_click(lambda event, i=i: edit.pick(i, event))
+    edit.load_identity()
 
-    def current() -> BodySource:
-        return bodies[state["body"]]
 
-    with gui.add_folder("Identity"):
-        if len(bodies) > 1:
-            panels.body = gui.add_dropdown("Body", labels, initial_value=labels[0])
-        box = gui.add_markdown("")
-        width = max((len(b.identity.names) for b in bodies if b.identity is not None), default=0)
-        for k in range(width):
-            panels.identity.append(gui.add_slider(f"p{k}", min=0.0, max=1.0, step=0.01, initial_value=0.5))
-        reset = gui.add_button("Reset identity")
-    with gui.add_folder("Pose"):
-        # The rig's names (a body of stored meshes has none: its joint edits do nothing).
-        names = list(max((b.joint_names for b in bodies), key=len)[1:]) or ["(no joints)"]
-        panels.joint = gui.add_dropdown("Joint", names, initial_value=names[0])
-        for axis in "xyz":
-            panels.rotation.append(gui.add_slider(f"Rotate {axis} (deg)", min=-180, max=180, step=1, initial_value=0))
-        reset_pose = gui.add_button("Reset joint")
+class _Edits:
+    """State of the edit panels: the body they edit, its identity values and joint turns."""
 
-    def load_identity() -> None:
+    def __init__(self, viewer: Viewer, panels: Panels) -> None:
+        self.viewer, self.panels, self.bodies = viewer, panels, viewer.bodies
+        self.labels = [f"{i}: {b.name}" for i, b in enumerate(self.bodies)]
+        self.quiet = _Quiet()
+        self.edits: dict[tuple[int, int], np.ndarray] = {}  # (body, joint) -> axis-angle turn
+        self.values: dict[int, np.ndarray] = {}  # identity values set by the sliders, per body
+        self.body = 0
+        gui = viewer.server.gui
+        with gui.add_folder("Identity"):
+            if len(self.bodies) > 1:
+                panels.body = gui.add_dropdown("Body", self.labels, initial_value=self.labels[0])
+            self.box = gui.add_markdown("")
+            width = max((len(b.identity.names) for b in self.bodies if b.identity is not None), default=0)
+            for k in range(width):
+                panels.identity.append(gui.add_slider(f"p{k}", min=0.0, max=1.0, step=0.01, initial_value=0.5))
+            self.reset = gui.add_button("Reset identity")
+        with gui.add_folder("Pose"):
+            # The rig's names (a body of stored meshes has none: its joint edits do nothing).
+            self.names = list(max((b.joint_names for b in self.bodies), key=len)[1:]) or ["(no joints)"]
+            panels.joint = gui.add_dropdown("Joint", self.names, initial_value=self.names[0])
+            for axis in "xyz":
+                panels.rotation.append(
+                    gui.add_slider(f"Rotate {axis} (deg)", min=-180, max=180, step=1, initial_value=0)
+                )
+            self.reset_pose = gui.add_button("Reset joint")
+
+    @property
+    def current(self) -> BodySource:
+        return self.bodies[self.body]
+
+    @property
+    def joint(self) -> int:
+        return 1 + self.names.index(str(self.panels.joint.value))
+
+    def load_identity(self) -> None:
         """Relabel, range and set the sliders for the current body's identity."""
-        ident = current().identity
-        box.content = f"**{ident.backend}** identity" if ident is not None else "no identity sliders for this body"
-        with quiet():
-            for k, s in enumerate(panels.identity):
+        ident = self.current.identity
+        self.box.content = f"**{ident.backend}** identity" if ident is not None else "no identity sliders for this body"
+        with self.quiet():
+            for k, s in enumerate(self.panels.identity):
                 if ident is None or k >= len(ident.names):
                     s.visible = False
                     continue
                 s.visible, s.label = True, ident.names[k]
                 s.min, s.max = float(ident.low[k]), float(ident.high[k])
                 s.step = (s.max - s.min) / 100
-                s.value = float(values.get(state["body"], ident.values)[k])
+                s.value = float(self.values.get(self.body, ident.values)[k])
 
-    def joint_index() -> int:
-        return 1 + names.index(str(panels.joint.value))
-
-    def load_rotation() -> None:
-        aa = edits.get((state["body"], joint_index()), np.zeros(3))
-        with quiet():
-            for s, v in zip(panels.rotation, np.degrees(aa), strict=True):
+    def load_rotation(self) -> None:
+        aa = self.edits.get((self.body, self.joint), np.zeros(3))
+        with self.quiet():
+            for s, v in zip(self.panels.rotation, np.degrees(aa), strict=True):
                 s.value = float(round(v))
 
-    def on_identity(_) -> None:
-        ident = current().identity
-        if quiet.on or ident is None:
+    def on_identity(self, _) -> None:
+        ident = self.current.identity
+        if self.quiet.on or ident is None:
             return
-        values[state["body"]] = np.array([s.value for s in panels.identity[: len(ident.names)]], dtype=np.float64)
-        current().set_identity(values[state["body"]])
-        viewer.refresh(current())
+        values = np.array([s.value for s in self.panels.identity[: len(ident.names)]], dtype=np.float64)
+        self.values[self.body] = values
+        self.current.set_identity(values)
+        self.viewer.refresh(self.current)
 
-    def on_rotation(_) -> None:
-        if quiet.on:
+    def on_rotation(self, _) -> None:
+        if self.quiet.on:
             return
-        aa = np.radians([float(s.value) for s in panels.rotation])
-        edits[(state["body"], joint_index())] = aa
-        current().set_joint_rotation(joint_index(), aa)
-        viewer.refresh(current())
+        aa = np.radians([float(s.value) for s in self.panels.rotation])
+        self.edits[(self.body, self.joint)] = aa
+        self.current.set_joint_rotation(self.joint, aa)
+        self.viewer.refresh(self.current)
 
-    for s in panels.identity:
-        s.on_update(on_identity)
-    for s in panels.rotation:
-        s.on_update(on_rotation)
-    panels.joint.on_update(lambda _: load_rotation())
-
-    @reset.on_click
-    def _(_) -> None:
-        ident = current().identity
+    def reset_identity(self) -> None:
+        ident = self.current.identity
         if ident is not None:
-            values.pop(state["body"], None)
-            current().set_identity(ident.values)
-            load_identity()
-            viewer.refresh(current())
+            self.values.pop(self.body, None)
+            self.current.set_identity(ident.values)
+            self.load_identity()
+            self.viewer.refresh(self.current)
 
-    @reset_pose.on_click
-    def _(_) -> None:
-        edits.pop((state["body"], joint_index()), None)
-        current().set_joint_rotation(joint_index(), np.zeros(3))
-        load_rotation()
-        viewer.refresh(current())
+    def reset_joint(self) -> None:
+        self.edits.pop((self.body, self.joint), None)
+        self.current.set_joint_rotation(self.joint, np.zeros(3))
+        self.load_rotation()
+        self.viewer.refresh(self.current)
 
-    if panels.body is not None:
+    def select(self, i: int) -> None:
+        """Edit body ``i``: its identity on the sliders, its turn of the picked joint."""
+        self.body = i
+        self.load_identity()
+        self.load_rotation()
 
-        @panels.body.on_update
-        def _(_) -> None:
-            state["body"] = labels.index(str(panels.body.value))
-            load_identity()
-            load_rotation()
-
-    def pick(i: int, event) -> None:
-        """A click on body ``i`` picks it and the joint nearest the click's ray for the Pose panel."""
-        b = viewer._bodies[i]
-        if b.joints is None or len(b.joints) != len(names) + 1:
+    def pick(self, i: int, event) -> None:
+        """A click on body ``i`` picks it and the joint nearest the click's ray."""
+        b = self.viewer._bodies[i]
+        if b.joints is None or len(b.joints) != len(self.names) + 1:
             return
         j = nearest_joint(b.joints + b.offset, np.asarray(event.ray_origin), np.asarray(event.ray_direction))
-        if panels.body is not None:
-            panels.body.value = labels[i]
-        state["body"] = i
-        panels.joint.value = names[j - 1]
-        load_rotation()
-
-    for i, b in enumerate(viewer._bodies):
-        b.mesh.on_click(lambda event, i=i: pick(i, event))
-
-    load_identity()
+        if self.panels.body is not None:
+            self.panels.body.value = self.labels[i]  # its callback selects the body
+        self.select(i)
+        self.panels.joint.value = self.names[j - 1]
