@@ -14,7 +14,10 @@ points in a file are real ghosts (truth: null).
   (paper Table 2).
 - **tracklet**: the sequence keeps its columns; the same per-frame occlusions and ghosts
   (ghosts in extra columns), 50 broken trajectories (paper §4.4), per-frame labels, then the
-  majority label per column.
+  majority label per column ("vote", ``label_tracklets``) and the settled spans ("tracklet",
+  ``settle_tracklets``, what ``unibody mocap label`` does). **joined**: the same sequence with
+  10 more errors of a tracker, two trajectories joined wrongly (two columns swap their samples
+  from a random frame on): a column's evidence is split over time.
 - **session layouts** (``--session KEY=WEIGHTS ...``, paper §4.5): the files whose name holds
   KEY are labelled again by a labeler of their session's layout (``unibody mocap layout`` on
   one frame: the model's markers at the session's places and its other markers, named X01...);
@@ -22,10 +25,11 @@ points in a file are real ghosts (truth: null).
   pooled row takes every session's files from its own labeler.
 - Scores: accuracy over all real points and macro F1 over the labels present incl. null.
 - **body** (``unibody.mocap.relabel``): the per-frame C+G labels and the tracklet labels of
-  the rows above (the same draws), checked against a body solved from them: each point takes
-  the solved marker it sits on, where that is clear. It uses the whole sequence (the solve's
-  shape and temporal prior), so it is a sequence labelling, not a per-frame one. Frames/s:
-  the two checks of a file (four solves each: two passes, each solved again without the far labels).
+  the rows above (the same draws), checked against a body solved from them: per frame
+  (``relabel``: each point takes the solved marker it sits on, where that is clear; four solves)
+  and on tracklets (``relabel_tracklets``: the body's labels are more evidence for the spans;
+  one solve at >= 50 Hz). It uses the whole sequence (the solve's shape and temporal prior), so
+  it is a sequence labelling, not a per-frame one. Frames/s: each check of a file.
 - **speed**: labeling frames/s at batch 1 and 256 (forward + decoding) on 256 real frames
   spread over each model's files, corrupted as per-frame C+G, with the two-stage labelers'
   retry confidence (their cost depends on the frames) and without retries; best and median
@@ -48,11 +52,11 @@ import torch
 
 from unibody.mocap.c3d import MarkerSequence, read_markers
 from unibody.mocap.corrupt import MocapBatch, break_trajectories, corrupt_frames
-from unibody.mocap.labeler import Labeler, frame_probabilities, label_frames, predict
+from unibody.mocap.labeler import Labeler, frame_probabilities, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.metrics import labeling_scores
 from unibody.mocap.pipeline import load_labeler, render_solution, solve_sequence
-from unibody.mocap.relabel import relabel
+from unibody.mocap.relabel import relabel, relabel_tracklets
 from unibody.mocap.solve import lab_to_unibody
 from unibody.mocap.tracklets import label_tracklets, settle_tracklets
 
@@ -312,7 +316,8 @@ def body_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
     """The label section's per-frame C+G and tracklet labels (the same draws), then checked by a body solve."""
     print("\n## Body-checked labels (unibody.mocap.relabel: a body solved from the labels, points re-assigned)")
     print(
-        "| file | model | frames | per-frame C+G | + body | tracklet | tracklet + body | body check, frames/s |\n"
+        "| file | model | frames | per-frame C+G | + body | tracklet | tracklet + body "
+        "| body check, frames/s (per-frame / tracklet) |\n"
         "|---|---|---|---|---|---|---|---|"
     )
     for name, files in FILES.items():
@@ -333,11 +338,13 @@ def body_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
             broken, col_truth = broken_sequence(marked, ghosts, np.random.default_rng(seed), null)
             broken_t = torch.as_tensor(broken)
             vis = torch.isfinite(broken_t).all(-1)
-            track = label_tracklets(label_frames(model, broken_t.float()), vis, null)
+            prob = frame_probabilities(model, broken_t.float()).prob
+            track = settle_tracklets(prob, vis)
             t = time.perf_counter()
             checked, _ = relabel(pts, pred, layout, fps=seq.rate)
-            track_checked, _ = relabel(broken_t, track, layout, fps=seq.rate)
-            rate = 2 * len(marked) / (time.perf_counter() - t)
+            t1 = time.perf_counter()
+            track_checked, _ = relabel_tracklets(broken_t, prob, layout, fps=seq.rate)
+            rates = f"{len(marked) / (t1 - t):.0f} / {len(marked) / (time.perf_counter() - t1):.0f}"
             col_truth = torch.from_numpy(col_truth).expand(vis.shape)
             rows = {
                 "frame": (pred[mask], truth[mask]),
@@ -347,7 +354,7 @@ def body_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
             }
             pooled.append(rows)
             cells = " | ".join(fmt(labeling_scores(*v, null=null)) for v in rows.values())
-            print(f"| {Path(rel).stem} | {name} | {len(marked)} | {cells} | {rate:.0f} |", flush=True)
+            print(f"| {Path(rel).stem} | {name} | {len(marked)} | {cells} | {rates} |", flush=True)
         cells = " | ".join(fmt(v) for v in pool(pooled, null).values())
         print(f"| **all {name} files** | {name} | | {cells} | |", flush=True)
 

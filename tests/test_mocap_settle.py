@@ -49,14 +49,16 @@ def test_short_or_unsure_runs_are_not_cut():
     vis = torch.ones(t, 1, dtype=torch.bool)
     assert column_spans(_prob(lab), vis).unique().numel() == 1
     assert (settle_tracklets(_prob(lab), vis) == 0).all()
-    lab[30:70, 0] = 3  # 40 frames: an island worth 35 > 2 switches
+    lab[30:70, 0] = 3  # 40 frames: worth 35 > 2 switches, but an island between two runs of one label
+    assert column_spans(_prob(lab), vis).unique().numel() == 1
+    lab[70:, 0] = 2  # ... unless the column ends on a third label
     assert column_spans(_prob(lab), vis).unique().numel() == 3
     assert (settle_tracklets(_prob(lab), vis) == lab).all()
     lab[:] = 0
-    lab[80:, 0] = 3  # 20 frames at the end: a lead of 0.875 each, 17.5 > switch, but < min_span
-    assert column_spans(_prob(lab), vis).unique().numel() == 1
-    assert column_spans(_prob(lab), vis, TrackletConfig(min_span=10)).unique().numel() == 2
-    assert column_spans(_prob(lab), vis, TrackletConfig(min_span=10, switch=20.0)).unique().numel() == 1
+    lab[80:, 0] = 3  # 20 frames at the end: a lead of 0.875 each, 17.5 > switch
+    assert column_spans(_prob(lab), vis).unique().numel() == 2
+    assert column_spans(_prob(lab), vis, TrackletConfig(min_span=30)).unique().numel() == 1  # < min_span
+    assert column_spans(_prob(lab), vis, TrackletConfig(switch=20.0)).unique().numel() == 1
 
 
 def test_clash_goes_to_the_evidence_and_the_loser_takes_its_next_label():
@@ -108,3 +110,38 @@ def test_bad_arguments():
 def test_body_stride():
     assert body_stride(120.0) == 2 and body_stride(100.0) == 2 and body_stride(60.0) == 1 and body_stride(240.0) == 4
     assert np.isclose(120.0 / body_stride(120.0), 60.0)
+
+
+def test_a_marker_column_unsure_for_a_while_is_not_cut():
+    t = 150
+    lab = torch.full((t, 1), 2)
+    lab[50:100, 0] = L  # 50 frames the labeler calls it a ghost: one span, the marker's
+    vis = torch.ones(t, 1, dtype=torch.bool)
+    assert column_spans(_prob(lab), vis).unique().numel() == 1
+    assert (settle_tracklets(_prob(lab), vis) == 2).all()
+    lab[100:, 0] = 1  # ... but a ghost run between two markers' runs is a span of its own
+    assert column_spans(_prob(lab), vis).unique().numel() == 3
+
+
+@pytest.mark.slow
+def test_body_check_on_tracklets_of_a_real_file():
+    from dataclasses import replace
+    from pathlib import Path
+
+    from unibody.mocap.c3d import read_markers
+    from unibody.mocap.layout import MarkerLayout
+    from unibody.mocap.pipeline import label_sequence, load_labeler
+
+    path = Path(__file__).resolve().parents[2] / "shared/evaldata/c3d/cmu_85_02.c3d"
+    if not path.is_file():
+        pytest.skip("needs ../shared/evaldata")
+    seq = read_markers(path)
+    seq = replace(seq, points=seq.points[200:320])
+    model = load_labeler("cmu41")
+    truth = np.array([model.label_names.index(x) for x in seq.labels])
+    lines: list[str] = []
+    plain = label_sequence(seq, model)
+    checked = label_sequence(seq, model, layout=MarkerLayout.load("cmu41"), progress=lines.append)
+    acc = [(x.point_labels == truth)[seq.visible].mean() for x in (plain, checked)]
+    assert acc[1] >= acc[0] - 1e-3 and acc[1] > 0.99
+    assert any("body check (every 2 frames solved)" in x for x in lines)

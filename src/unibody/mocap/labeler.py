@@ -622,12 +622,19 @@ def label_frames(model: Labeler, points: torch.Tensor, batch: int = 256) -> torc
 
 
 @torch.no_grad()
-def frame_probabilities(model: Labeler, points: torch.Tensor, batch: int = 256) -> FrameLabels:
-    """:func:`label_frames` and each point's label probabilities (the evidence tracklets weigh)."""
-    return _label_frames(model, points, batch, True)
+def frame_probabilities(
+    model: Labeler, points: torch.Tensor, batch: int = 256, *, retry: float | None = None
+) -> FrameLabels:
+    """:func:`label_frames` and each point's label probabilities (the evidence tracklets weigh).
+
+    ``retry`` overrides the model's retry confidence (see :class:`Labeler`; 0: no retries).
+    """
+    return _label_frames(model, points, batch, True, retry)
 
 
-def _label_frames(model: Labeler, points: torch.Tensor, batch: int, keep_prob: bool) -> FrameLabels:
+def _label_frames(
+    model: Labeler, points: torch.Tensor, batch: int, keep_prob: bool, retry: float | None = None
+) -> FrameLabels:
     check_shape(points, "T N 3", name="points")
     check_like(points, model.bin_score, "points", owner="the labeler")
     if batch < 1:
@@ -648,7 +655,7 @@ def _label_frames(model: Labeler, points: torch.Tensor, batch: int, keep_prob: b
             mask = vis.gather(1, order)
             pts = points[start : start + batch].gather(1, order[..., None].expand(-1, -1, 3))
             pts = torch.where(mask[..., None], pts, 0.0)
-            plan = model(pts, mask)
+            plan = model(pts, mask, retry=retry)
             labels, _ = predict(plan, mask)
             out[start : start + batch].scatter_(1, order, labels)
             if keep_prob:
