@@ -1,7 +1,8 @@
 """Mocap labeling and body solve on real, labelled C3D files (paper 003 protocol; evaluation only).
 
-    OMP_NUM_THREADS=2 python benchmarks/mocap.py [--evaldata ../shared/evaldata] [--sections label body speed solve]
-        [--session pycgm=build/s2_pycgm/labeler.pt tennis=build/s2_tennis/labeler.pt] [--retry R] [--bf16]
+    OMP_NUM_THREADS=2 python benchmarks/mocap.py [--evaldata ../shared/evaldata]
+        [--sections label body speed solve copies] [--files KEY ...] [--retry R] [--bf16]
+        [--session pycgm=build/s2_pycgm/labeler.pt tennis=build/s2_tennis/labeler.pt]
 
 Labels are hidden from the labeler and used only to score it. Files: CMU 85_02, 85_12, 135_02
 (CMU 41 layout, ``cmu41`` model); BTKData Plug-in Gait walking / static (35 markers), pyCGM
@@ -36,6 +37,9 @@ points in a file are real ghosts (truth: null).
   of 5 rounds.
 - ``--retry R`` sets the two-stage labelers' retry confidence (0: no retries); ``--bf16`` runs
   the labelers' networks in bfloat16 (``Labeler.set_autocast``; fast on CPUs with AMX).
+- **copies** (not in the default sections): ``label_sequence`` on each whole file and on the file
+  with three more columns that copy three markers exactly; a copy is right when it has its
+  original's label (``unibody.mocap.coincident``).
 - **solve**: the body solve on the files' own labels: mean / median marker residual,
   fraction of frames solved, frames/s of the whole solve; a PNG of one solved frame.
 """
@@ -55,7 +59,7 @@ from unibody.mocap.corrupt import MocapBatch, break_trajectories, corrupt_frames
 from unibody.mocap.labeler import Labeler, frame_probabilities, predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.metrics import labeling_scores
-from unibody.mocap.pipeline import load_labeler, render_solution, solve_sequence
+from unibody.mocap.pipeline import label_sequence, load_labeler, render_solution, solve_sequence
 from unibody.mocap.relabel import relabel, relabel_tracklets
 from unibody.mocap.solve import lab_to_unibody
 from unibody.mocap.tracklets import label_tracklets, settle_tracklets
@@ -359,6 +363,39 @@ def body_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
         print(f"| **all {name} files** | {name} | | {cells} | |", flush=True)
 
 
+COPIED = {"cmu41": ("LFWT", "CLAV", "LFHD"), "pig39": ("LASI", "CLAV", "LFHD")}
+
+
+def copies_section(root: Path, models: dict[str, Labeler]) -> None:
+    """``label_sequence`` (settled tracklets) on each file as it is and with three more columns that
+    copy three of its markers exactly (as a held-out lab's exports do): accuracy / F1 of every
+    point (a copy is right when it has its original's label), the copy columns found, CPU s."""
+    print("\n## Copied columns (label_sequence on the whole file; a copy is right with its original's label)")
+    print("| file | model | frames | as it is | with 3 copied columns | copy columns found | CPU s (as is / copies) |")
+    print("|---|---|---|---|---|---|---|")
+    for name, files in FILES.items():
+        model, null = models[name], models[name].num_labels
+        for rel in files:
+            seq = read(root / rel)
+            own = [seq.labels.index(x) for x in COPIED[name] if x in seq.labels]
+            pts = np.concatenate([seq.points, seq.points[:, own]], axis=1)
+            names = (*seq.labels, *(f"COPY{i}" for i in range(len(own))))
+            copied = MarkerSequence(pts, names, ("",) * len(names), seq.rate)
+            truth = np.array([model.label_names.index(x) if x in model.label_names else null for x in seq.labels])
+            truth = np.concatenate([truth, truth[own]])
+            cells, times, found = [], [], ""
+            for s in (seq, copied):
+                t = time.process_time()
+                out = label_sequence(s, model)
+                times.append(time.process_time() - t)
+                vis = torch.from_numpy(s.visible)
+                tru = torch.from_numpy(np.broadcast_to(truth[: s.num_markers], vis.shape).copy())
+                cells.append(fmt(labeling_scores(torch.from_numpy(out.point_labels)[vis], tru[vis], null=null)))
+                found = ", ".join(f"{c}={o}" for c, o in out.report.copies)
+            print(f"| {Path(rel).stem} | {name} | {seq.num_frames} | {cells[0]} | {cells[1]} | {found} | "
+                  f"{times[0]:.1f} / {times[1]:.1f} |", flush=True)  # fmt: skip
+
+
 def _gemm_rate(rounds: int) -> str:
     """float32 GFLOP/s of the labeler's widest product (a 256-frame pass's q/k/v projection), best / median."""
     x, w, bias = torch.randn(256 * 44, 96), torch.randn(96, 288), torch.randn(288)
@@ -469,6 +506,8 @@ def main() -> None:
         label_section(args.evaldata, models, args.seed, sessions)
     if "body" in args.sections:
         body_section(args.evaldata, models, args.seed)
+    if "copies" in args.sections:
+        copies_section(args.evaldata, models)
     if "speed" in args.sections:
         speed_section(args.evaldata, models, args.seed)
     if "solve" in args.sections:
