@@ -5,8 +5,9 @@ Measures (:mod:`unibody.correctives.metrics`): edge strain and dihedral change i
 regions (mean, P95), limb-segment volume / rest, the smallest forearm cross-section / rest at a
 150 deg hand twist, self-intersecting triangle pairs (trunk and limbs; the first
 ``--intersect-identities`` identities), the MLP against the teacher (mm), the change the MLP
-makes at small poses (every joint within 0.2 rad of the rest pose, and of the T-pose), and the
-cost of posing with correctives at batch 1 and 32 (float32, one thread, best of 5 x 20 calls).
+makes at small poses (every joint within 0.2 rad of the rest pose, and of the T-pose), the
+cost of posing with correctives at batch 1 and 32 (float32, one thread, best of 5 x 20 calls),
+and what pose inversion (which models plain LBS) leaves on meshes made with correctives.
 
     OMP_NUM_THREADS=1 python benchmarks/correctives.py [--identities 10] [--png docs/correctives.png]
 """
@@ -82,7 +83,7 @@ def picture(layer: BodyLayer, path: str) -> None:
     """Four stress poses of the mean body: LBS (top) vs correctives (bottom), close on the joint."""
     prepared = layer.prepare_identity(torch.zeros(1, layer.identity.num_params))
     poses, labels = stress_poses(torch.Generator().manual_seed(0), seeded=0)
-    picks = [("elbow 150 (left)", "LeftForeArm", (0.0, -0.3, 1.0)), ("knee 150 (left)", "LeftShin", (1.0, 0.0, 0.2)),
+    picks = [("elbow 150 (left)", "LeftForeArm", (0.15, 1.0, 0.5)), ("knee 150 (left)", "LeftShin", (1.0, 0.0, 0.2)),
              ("shoulder abduction 150 (left)", "LeftArm", (0.3, 0.2, 1.0)),
              ("squat: hip 120 + knee 150 (left)", "LeftLeg", (1.0, 0.1, 0.3))]  # fmt: skip
     faces = layer.faces.numpy()
@@ -109,7 +110,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--png", default=None)
-    parser.add_argument("--sections", default="quality small speed", help="any of: quality small speed")
+    parser.add_argument(
+        "--sections", default="quality small speed inversion", help="any of: quality small speed inversion"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     model = Correctives.load(args.weights)
@@ -141,8 +144,37 @@ def main() -> None:
             off, on = timing(layer, prepared, poses[:b], False), timing(layer, prepared, poses[:b], True)
             print(f"pose(), float32, batch {b:2d}, {torch.get_num_threads()} thread(s): without {off:6.2f} ms, "
                   f"with correctives {on:6.2f} ms (+{on / off - 1:.0%})")  # fmt: skip
+    if "inversion" in args.sections:
+        inversion(layer, args)
     if args.png:
         picture(layer, args.png)
+
+
+def inversion(layer: BodyLayer, args: argparse.Namespace) -> None:
+    """Pose inversion (which models plain LBS) of meshes made with correctives: the error it leaves."""
+    from unibody import PRESETS, PoseInverter
+    from unibody.synth.poses import sample_poses
+
+    coeffs = draw_identities(layer, 4, keyed_generator("correctives-benchmark", args.seed))
+    gen = keyed_generator("correctives-inversion", args.seed)
+    stress, _ = stress_poses(keyed_generator("correctives-stress", args.seed))
+    sets = {"generator poses": sample_poses(8, gen, fingers=False), "stress poses": stress[:8]}
+    for preset in ("analytic", "refined"):
+        inverter = PoseInverter(layer, PRESETS[preset])
+        for name, poses in sets.items():
+            rows = {True: [], False: []}
+            for c in coeffs:
+                prepared = layer.prepare_identity(c[None])
+                for corr in (False, True):
+                    target = layer.pose(prepared, poses, correctives=corr).vertices
+                    res = inverter.invert(target.contiguous(), prepared)
+                    again = layer.pose(prepared, res.rotations, transl=res.transl, correctives=corr).vertices
+                    rows[corr].append(((again - target).norm(dim=-1) * 1e3, res.per_vertex_error * 1e3))
+            for corr in (False, True):
+                e = torch.stack([r[0] for r in rows[corr]])
+                tag = "with" if corr else "without"
+                print(f"inversion {preset:8s} {name:15s} meshes {tag:7s} correctives, re-posed {tag} them: "
+                      f"mean {e.mean():.2f} mm, P95 {e.quantile(0.95):.2f} mm, max {e.max():.1f} mm")  # fmt: skip
 
 
 def quality(layer: BodyLayer, model: Correctives, args: argparse.Namespace) -> None:

@@ -74,7 +74,7 @@ def generate(args: argparse.Namespace) -> None:
         tmp.rename(data / f"chunk_{i:05d}.pt")
 
 
-def build_model(layer: BodyLayer, setup: TeacherSetup, size_ref: float, meta: dict) -> Correctives:
+def build_model(layer: BodyLayer, setup: TeacherSetup, size_ref: float, meta: dict, hidden: int) -> Correctives:
     """Active joints: the stressed ones; inputs: the joint, its parent, its children (not Hips/Root)."""
     names, parents = layer.joint_names, setup.parents.tolist()
     rows, verts = [], []
@@ -86,7 +86,18 @@ def build_model(layer: BodyLayer, setup: TeacherSetup, size_ref: float, meta: di
         verts.append(torch.from_numpy(mask.nonzero()[0]))
     width = max(len(r) for r in rows)
     inputs = torch.tensor([r + [-1] * (width - len(r)) for r in rows])
-    return Correctives(inputs, verts, layer.num_vertices, size_ref=size_ref, joint_names=tuple(setup.masks), meta=meta)
+    return Correctives(
+        inputs, verts, layer.num_vertices, hidden=hidden, size_ref=size_ref, joint_names=tuple(setup.masks), meta=meta
+    )
+
+
+def _validate(model: Correctives, rel: torch.Tensor, size: torch.Tensor, d: torch.Tensor, best: dict) -> dict:
+    """Mean rest-space error (mm) on the held-out identities; the best state so far."""
+    with torch.no_grad():
+        mm = float((model.union_displacements(rel, size) - d).norm(dim=-1).mean()) * 1e3
+    if mm < best["mm"]:
+        best = {"mm": mm, "state": {k: v.clone() for k, v in model.state_dict().items()}}
+    return {**best, "last": mm}
 
 
 def train(args: argparse.Namespace, command: str) -> None:
@@ -118,17 +129,17 @@ def train(args: argparse.Namespace, command: str) -> None:
         ),
         "generate": f"python scripts/train_correctives.py generate --identities {len(chunks)} --seed {args.seed}",
     }
-    model = build_model(layer, setup, size_ref, meta)
+    model = build_model(layer, setup, size_ref, meta, args.hidden)
     if not torch.equal(model.union, setup.union):
         raise SystemExit("internal: the model's vertex union differs from the teacher's")
-    opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     ckpt = data / "checkpoint.pt"
-    step, elapsed = 0, 0.0
+    step, elapsed, best = 0, 0.0, {"mm": float("inf"), "last": float("inf"), "state": None}
     if args.resume and ckpt.exists():
         state = torch.load(ckpt, weights_only=True)
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["opt"])
-        step, elapsed = state["step"], state["elapsed"]
+        step, elapsed, best = state["step"], state["elapsed"], state["best"]
         print(f"resumed at step {step}, {elapsed / 60:.1f} min")
     budget = args.minutes * 60
     gen = torch.Generator().manual_seed(args.seed + step)
@@ -150,11 +161,22 @@ def train(args: argparse.Namespace, command: str) -> None:
         if step % 50 == 0:
             bar.update(int(elapsed) - bar.n)
             bar.set_postfix(loss_mm=f"{loss.sqrt().item() * 1e3:.2f}", step=step)
-        if time.perf_counter() - last > 120:
-            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed}, ckpt)
+        if (
+            time.perf_counter() - last > args.validate_every
+        ):  # checkpoint, and keep the best model on the held-out identities
+            best = _validate(model, v_rel, v_size, v_d, best)
+            torch.save(
+                {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed, "best": best},
+                ckpt,
+            )
+            bar.write(f"step {step}: held-out mean {best['last']:.3f} mm (best {best['mm']:.3f} mm)")
             last = time.perf_counter()
     bar.close()
-    torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed}, ckpt)
+    best = _validate(model, v_rel, v_size, v_d, best)
+    torch.save(
+        {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed, "best": best}, ckpt
+    )
+    model.load_state_dict(best["state"])
     with torch.no_grad():
         err = (model.union_displacements(v_rel, v_size) - v_d).norm(dim=-1)
     model.meta.update(
@@ -162,6 +184,10 @@ def train(args: argparse.Namespace, command: str) -> None:
             "steps": step,
             "minutes": elapsed / 60,
             "validation_rest_mm": [float(err.mean()) * 1e3, float(err.max()) * 1e3],
+            "training": (
+                f"AdamW lr {args.lr} wd {args.weight_decay}, hidden {args.hidden}, cosine over "
+                f"{args.minutes} min, batch {args.batch}; best held-out state"
+            ),
         }
     )
     print(f"{step} steps; held-out rest-space error mean {err.mean() * 1e3:.2f} mm, max {err.max() * 1e3:.2f} mm")
@@ -185,6 +211,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--lr", type=float, default=3e-3)
     parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--weight-decay", type=float, default=0.01)
+    parser.add_argument("--hidden", type=int, default=64)
+    parser.add_argument("--validate-every", type=float, default=120.0, help="seconds between checkpoints")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)

