@@ -315,7 +315,7 @@ def test_training_script_slide_sets_one_segment_range():
     mod = _script()
     base = dict(subsets=[], neck_roll=None, extras=0, extra_distance=(0.03, float("inf")), stick_prob=0.9,
                 extra_prob=0.3, extra_clusters=0.0, cluster_size=3, cluster_radius=0.08, stature_prob=0.75,
-                head_bands=False, fitted=None, fold=None, motion_prob=0.5)  # fmt: skip
+                head_bands=False, fitted=None, fold=None, motion_prob=0.5, lab_variation=False)  # fmt: skip
     layout = MarkerLayout.load("cmu41")
     syn = mod.synthetic(argparse.Namespace(**base, slide=[["FIN", "0.1", "1.0"]]), layout, 0, 4)
     assert "fold" not in syn.config.pose  # --fold FRACTION: sample_poses(fold=FRACTION)

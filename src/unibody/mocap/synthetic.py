@@ -253,7 +253,7 @@ def mirror_pose(pose: torch.Tensor, joint_names: tuple[str, ...]) -> torch.Tenso
     ``joint_names`` are the 78 public joints (Root first), as ``BodyLayer.joint_names``."""
     names = list(joint_names[1:])
     swap = {"Left": "Right", "Right": "Left"}
-    partner = [names.index(next((swap[k] + n[len(k):] for k in swap if n.startswith(k)), n)) for n in names]
+    partner = [names.index(next((swap[k] + n[len(k) :] for k in swap if n.startswith(k)), n)) for n in names]
     return mirror_rotation(pose[:, partner])
 
 
