@@ -50,6 +50,7 @@ from .rig import Rig
 from .skeleton import SkeletonTransfer
 
 if TYPE_CHECKING:
+    from .correctives.model import Correctives
     from .procedural import ProceduralDefinition, ProceduralTwist
     from .topology import TopologyTransfer
 
@@ -192,10 +193,15 @@ class BodyLayer(nn.Module):
             unibody (upper arms, forearms, thighs, shins), or a parsed
             :class:`~unibody.procedural.ProceduralDefinition`. The pose stays 77 joints and
             the outputs 78 public joints; the expanded skeleton is internal.
+        correctives: pose correctives (paper 000 §3.5.2, :mod:`unibody.correctives`): True for
+            the weights shipped with unibody, or a loaded
+            :class:`~unibody.correctives.model.Correctives`; applied by :meth:`pose` unless it is
+            told ``correctives=False``.
 
     Raises:
         TypeError: ``identity`` is not an nn.Module implementing IdentityBackend (the message
-            names the missing members), or ``procedural`` is neither a bool nor a definition.
+            names the missing members), or ``procedural`` is neither a bool nor a definition,
+            or ``correctives`` neither a bool nor a Correctives.
     """
 
     def __init__(
@@ -205,6 +211,7 @@ class BodyLayer(nn.Module):
         topology: TopologyTransfer | None = None,
         *,
         procedural: bool | ProceduralDefinition = False,
+        correctives: bool | Correctives = False,
     ) -> None:
         super().__init__()
         if identity is not None:
@@ -239,6 +246,15 @@ class BodyLayer(nn.Module):
         register_skin_layout(self, skin_layout(rig.skin_vertex, rig.skin_joint, rig.num_vertices, rig.num_joints))
         self.num_vertices, self.num_joints = rig.num_vertices, rig.num_joints
         self._compiled = False
+        self.correctives: Correctives | None = None
+        if correctives is not False:
+            from .correctives.model import Correctives
+
+            if correctives is True:
+                correctives = Correctives.load()
+            if not isinstance(correctives, Correctives):
+                raise TypeError(f"correctives: expected a bool or a Correctives, got {type(correctives).__name__}")
+            self.correctives = correctives.bind(self.skinning)
 
     @classmethod
     def from_anny(
@@ -247,6 +263,7 @@ class BodyLayer(nn.Module):
         local_changes: str | tuple[str, ...] = "none",
         phenotypes: Literal["default", "all"] = "default",
         procedural: bool | ProceduralDefinition = False,
+        correctives: bool | Correctives = False,
         dtype: torch.dtype = torch.float32,
     ) -> BodyLayer:
         """The canonical rig with Anny as identity backend (offline, from the ``anny`` package).
@@ -259,21 +276,33 @@ class BodyLayer(nn.Module):
         from .topology import TopologyTransfer
 
         identity = AnnyIdentity.create(local_changes=local_changes, phenotypes=phenotypes)
-        return cls(Rig.canonical(), identity, TopologyTransfer.from_anny(), procedural=procedural).to(dtype)
+        layer = cls(
+            Rig.canonical(), identity, TopologyTransfer.from_anny(), procedural=procedural, correctives=correctives
+        )
+        return layer.to(dtype)
 
     @classmethod
     def from_pca(
         cls,
+        space: str = "v1",
         *,
-        num_components: int = 128,
+        num_components: int | None = 128,
         procedural: bool | ProceduralDefinition = False,
+        correctives: bool | Correctives = False,
         dtype: torch.dtype = torch.float32,
     ) -> BodyLayer:
-        """The canonical rig with unibody's native PCA shape space (canonical meshes, no transfer)."""
+        """The canonical rig with a native PCA shape space (canonical meshes, no transfer).
+
+        Args:
+            space: a shipped space by name, "v1" (the default, Anny's space) or "v2" (broader,
+                Hips-placed; docs/shape_spaces.md), or the path (str or ``pathlib.Path``) of a
+                ``.npz`` written by ``unibody shape-space build``.
+            num_components: K, the leading components kept; None for all of the asset's.
+        """
         from .identity.pca import PCAIdentity
 
-        identity = PCAIdentity.from_asset(num_components=num_components, dtype=dtype)
-        return cls(Rig.canonical(), identity, None, procedural=procedural).to(dtype)
+        identity = PCAIdentity.from_asset(space, num_components=num_components, dtype=dtype)
+        return cls(Rig.canonical(), identity, None, procedural=procedural, correctives=correctives).to(dtype)
 
     @classmethod
     def from_identity(
@@ -281,6 +310,7 @@ class BodyLayer(nn.Module):
         identity: IdentityBackend,
         *,
         procedural: bool | ProceduralDefinition = False,
+        correctives: bool | Correctives = False,
         dtype: torch.dtype = torch.float32,
     ) -> BodyLayer:
         """Any identity backend on a foreign topology (SMPL family, MHR, GarmentMeasurements, ...).
@@ -295,7 +325,7 @@ class BodyLayer(nn.Module):
         with torch.no_grad():
             template, faces = identity.template().double(), identity.faces()
         topology = topology_transfer(template, faces, name=identity.name)
-        return cls(Rig.canonical(), identity, topology, procedural=procedural).to(dtype)
+        return cls(Rig.canonical(), identity, topology, procedural=procedural, correctives=correctives).to(dtype)
 
     def bind_local_rotations(self) -> torch.Tensor:
         """(1, 77, 3, 3) absolute local rotations of the rig's bind (A-)pose, R_bind,parent^T R_bind,k."""
@@ -504,6 +534,7 @@ class BodyLayer(nn.Module):
         transl: torch.Tensor | None = None,
         absolute: bool = False,
         check: bool = True,
+        correctives: bool | None = None,
     ) -> BodyOutput:
         """Pose a prepared identity.
 
@@ -517,6 +548,8 @@ class BodyLayer(nn.Module):
             check: validate the values of ``pose`` and ``transl`` and guard the outputs (below).
                 False skips only that (shapes, dtypes and devices are always checked), for
                 inner loops over data already validated; the result is bit-identical.
+            correctives: add the pose correctives to the rest mesh before skinning (paper 000
+                eq. 7); None follows the layer (on when it was built with ``correctives``).
 
         Returns:
             BodyOutput with B meshes (B may be 0: empty outputs of the right shapes).
@@ -537,9 +570,10 @@ class BodyLayer(nn.Module):
             TypeError: ``prepared`` is not a PreparedIdentity; ``pose``/``transl`` not tensors
                 of the layer's dtype and device.
             ValueError: a wrong shape, NaN/inf, a non-rotation matrix or a degenerate 6D
-                vector (the message names the joint and the batch item), or outputs that
-                overflowed the dtype.
+                vector (the message names the joint and the batch item), outputs that
+                overflowed the dtype, or ``correctives=True`` on a layer without them.
         """
+        corr = self._use_correctives(correctives)
         if not isinstance(prepared, PreparedIdentity):
             raise TypeError(f"prepared: expected a PreparedIdentity, got {type(prepared).__name__}")
         check_tensor(pose, "pose")
@@ -559,9 +593,11 @@ class BodyLayer(nn.Module):
         mats = None
         if self.twist is not None:
             local = batch_major(_local_math(pose, kind, absolute, left, right))[0]
-            g_rot, g_pos, vertices = self.twist(
-                p.rest_vertices, p.rest_rotations, p.rest_joints, p.offsets, local, transl
-            )
+            rest = p.rest_vertices
+            if corr is not None:
+                rel = corr.rest_relative(local, p.rest_rotations, self.parents)
+                rest = rest + corr(rel, corr.size_of(p.rest_joints))
+            g_rot, g_pos, vertices = self.twist(rest, p.rest_rotations, p.rest_joints, p.offsets, local, transl)
             world = homogeneous(g_rot, g_pos)
         else:
             dense = self._warp_pose(pose, kind, absolute, p, transl)
@@ -572,9 +608,26 @@ class BodyLayer(nn.Module):
                 )
             world, mats = dense
             vertices = self._skin(p, mats)
+            if corr is not None:
+                vertices = corr.posed(
+                    vertices, world, mats, p.rest_rotations, self.parents, corr.size_of(p.rest_joints)
+                )
         if check and b:
             self._check_overflow(world, vertices, mats, p.rest_vertices)
         return BodyOutput(vertices, world[..., :3, 3], world, p.rest_vertices.expand(b, -1, -1))
+
+    def _use_correctives(self, correctives: bool | None) -> Correctives | None:
+        """The correctives model to apply, or None (``pose``'s switch against the layer's)."""
+        if correctives is None or correctives is False:
+            return None if correctives is False else self.correctives
+        if correctives is not True:
+            raise TypeError(f"correctives: expected a bool or None, got {type(correctives).__name__}")
+        if self.correctives is None:
+            raise ValueError(
+                "correctives: True, but this layer has none; build it with correctives=True "
+                "(BodyLayer.from_anny(correctives=True), from_pca(...), BodyLayer(..., correctives=True))"
+            )
+        return self.correctives
 
     def _warp_pose(
         self, pose: torch.Tensor, kind: int, absolute: bool, p: PreparedIdentity, transl: torch.Tensor
