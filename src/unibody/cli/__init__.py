@@ -64,7 +64,9 @@ def _parser() -> argparse.ArgumentParser:
     lab.add_argument("--out", type=Path, required=True, help="labelled markers to write (.c3d or .npz)")
     lab.add_argument("--model", default="cmu41", help="shipped labeler (cmu41 | pig39) or a weights file")
     lab.add_argument("--up", default="z", choices=("z", "y"), help="vertical axis of the file")
-    lab.add_argument("--per-frame", action="store_true", help="label each frame on its own (no tracklets: columns are not settled over the take)")
+    lab.add_argument(
+        "--per-frame", action="store_true", help="label each frame on its own (no tracklets settled over the take)"
+    )
     lab.add_argument(
         "--retry", type=float, metavar="CONF",
         help="two-stage labelers: orient again the frames labelled less surely than CONF (default: the model's, "
