@@ -97,7 +97,9 @@ def main() -> None:
             print(f"| {b} | {1e3 * ta:.2f} | {b / ta:,.0f} | {1e3 * tb:.2f} | {b / tb:,.0f} |")
         if args.compile:
             layer.compile_posing()
-            print("\n| batch | (a) compiled: first call s | ms/call | meshes/s | eager ms/call | compiled / eager speed |")
+            print(
+                "\n| batch | (a) compiled: first call s | ms/call | meshes/s | eager ms/call | compiled / eager speed |"
+            )
             print("|---:|---:|---:|---:|---:|---:|")
             for b, (pose, transl, _) in inputs.items():
                 t0 = time.perf_counter()

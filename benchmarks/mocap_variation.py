@@ -79,8 +79,9 @@ def main() -> None:
         motions = read_motions(held)
         subjects = " ".join(map(str, args.holdout))
         rows.append((f"held-out CMU motions (subjects {subjects})", replace(base, motion_prob=1.0), motions))
-        every = {k: v for k, v in LAB_VARIATION.items()}
-        rows.append((f"held-out CMU motions + all of the above", replace(base, motion_prob=1.0, **every), motions))
+        rows.append(
+            ("held-out CMU motions + all of the above", replace(base, motion_prob=1.0, **LAB_VARIATION), motions)
+        )
     print(f"{args.frames} frames per row, seed {args.seed}, layout {layout.name}; per-frame accuracy (%)")
     print("| change | " + " | ".join(models) + " |")
     print("|---|" + "---|" * len(models))

@@ -134,7 +134,9 @@ def motion_files(paths: list[str], holdout: list[int]) -> tuple[list[Path], list
     if not files and paths:
         raise SystemExit(f"--motions: no *.motion.npz under {' '.join(paths)}")
     if bad := [f.name for f in files if motion_subject(f) in EVALUATION_SUBJECTS]:
-        raise SystemExit(f"--motions: {bad[0]} is a take of an evaluation subject {EVALUATION_SUBJECTS}; never train on it")
+        raise SystemExit(
+            f"--motions: {bad[0]} is a take of an evaluation subject {EVALUATION_SUBJECTS}; never train on it"
+        )
     kept = [f for f in files if motion_subject(f) not in holdout]
     return kept, [f for f in files if motion_subject(f) in holdout]
 
