@@ -24,6 +24,7 @@ import torch
 from PIL import Image
 
 from unibody import BodyLayer
+from unibody.correctives.metrics import limb_profile
 from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.rig import Rig
 from unibody.viz.render import Camera, MeshSpec, render_image
@@ -37,35 +38,6 @@ CASES = (
 )
 ANGLES = (90.0, 150.0)
 PLANES = 21
-
-
-def cross_section_area(verts: np.ndarray, faces: np.ndarray, origin: np.ndarray, normal: np.ndarray) -> float:
-    """Area of the cut of a closed triangle mesh by the plane (origin, unit normal), m^2."""
-    d = (verts - origin) @ normal
-    fd = d[faces]
-    cut = (fd.min(1) < 0) & (fd.max(1) > 0)
-    f, fd = faces[cut], fd[cut]
-    pts = []
-    for a, b in ((0, 1), (1, 2), (2, 0)):
-        da, db = fd[:, a], fd[:, b]
-        s = np.where((da < 0) != (db < 0), da / np.where(da == db, 1, da - db), np.nan)
-        pts.append(verts[f[:, a]] + s[:, None] * (verts[f[:, b]] - verts[f[:, a]]))
-    pts = np.stack(pts, 1)  # (F, 3 edges, 3); exactly two edges cross
-    ok = ~np.isnan(pts[..., 0])
-    p = pts[ok].reshape(-1, 2, 3)
-    p, q = p[:, 0] - origin, p[:, 1] - origin
-    tri = verts[f]
-    n_face = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    # Orient each cut segment so the solid is on its left seen from +normal.
-    flip = (np.cross(normal, q - p) * n_face).sum(1) > 0
-    p, q = np.where(flip[:, None], q, p), np.where(flip[:, None], p, q)
-    return 0.5 * float((np.cross(p, q) @ normal).sum())
-
-
-def limb_profile(verts, faces, a, b, ts):
-    """Cross-section areas at bone parameters ``ts`` between joint positions a and b."""
-    axis = (b - a) / np.linalg.norm(b - a)
-    return np.array([cross_section_area(verts, faces, a + t * (b - a), axis) for t in ts])
 
 
 def twisted_pose(prepared, rig: Rig, joint: str, start: str, end: str, degrees: float) -> torch.Tensor:
