@@ -301,7 +301,10 @@ def test_ctrl_c_exits_130_and_resumes(tmp_path):
     seq, out = _seq(tmp_path / "seq.npz", 12), tmp_path / "motion.npz"
     partial = tmp_path / "motion.npz.partial.npz"
     args = [*UNIBODY, "invert", str(seq), "--out", str(out), "--batch", "2", "--preset", "fast"]
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(  # SIGINT as a terminal delivers it, even under a runner that ignores it
+        args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
     deadline = time.monotonic() + 240
     while not partial.exists() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)

@@ -270,8 +270,11 @@ def test_output_folder_inside_the_inputs_never_replaces_a_users_file(tmp_path):
 def test_ctrl_c_writes_the_report_and_the_rerun_finishes(tmp_path):
     src, out = tmp_path / "in", tmp_path / "out"
     _folder(src, 6)
+    # SIGINT as a terminal delivers it, whatever the runner's disposition (a shell's background job
+    # starts with SIGINT ignored, and Python then never raises KeyboardInterrupt)
     proc = subprocess.Popen([sys.executable, "-c", SLOW, "convert", str(src), "--to", "motion", "--out", str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
     journal = out / "convert_report.journal"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and proc.poll() is None:
