@@ -348,7 +348,11 @@ def test_headless_chromium_draws_body_and_markers_and_follows_the_slider(pca_bod
             time.sleep(0.2)
         time.sleep(1.0)  # the scene arrives right after the connection; a screenshot costs seconds
         img = _screenshot(driver)
-        while time.monotonic() < deadline and _skin(img).sum() < 500:
+
+        def drawn(img: np.ndarray) -> bool:  # the body and both point clouds (they may arrive apart)
+            return _skin(img).sum() >= 500 and min(_near(img, c, 12).sum() for c in (colour, GHOST_COLOR)) >= 10
+
+        while time.monotonic() < deadline and not drawn(img):
             time.sleep(0.5)
             img = _screenshot(driver)
         h, w = img.shape[:2]
