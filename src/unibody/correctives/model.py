@@ -52,9 +52,11 @@ def size_of(rest_joints: torch.Tensor, bones: torch.Tensor | None = None) -> tor
     return (rest_joints[:, bones[:, 1]] - rest_joints[:, bones[:, 0]]).norm(dim=-1).mean(-1)
 
 
-def default_weights_path() -> Path:
-    """The shipped weights (``unibody/correctives/data/correctives.pt``)."""
-    return Path(str(resources.files("unibody.correctives") / "data" / "correctives.pt"))
+def default_weights_path(procedural: bool = False) -> Path:
+    """The shipped weights: ``correctives.pt`` for the plain rig, ``correctives_twist.pt`` for the
+    procedural-twist rig (trained against LBS + twist joints, so the twist is not corrected twice)."""
+    name = "correctives_twist.pt" if procedural else "correctives.pt"
+    return Path(str(resources.files("unibody.correctives") / "data" / name))
 
 
 class Correctives(nn.Module):
@@ -310,13 +312,13 @@ class Correctives(nn.Module):
         return model
 
     @classmethod
-    def load(cls, path: str | Path | None = None) -> Correctives:
-        """Load weights (default: the shipped ones).
+    def load(cls, path: str | Path | None = None, *, procedural: bool = False) -> Correctives:
+        """Load weights (default: the shipped ones for the plain rig, or for the twist rig with ``procedural``).
 
         Raises:
             FileNotFoundError: ``path`` does not exist (the message names it).
         """
-        path = default_weights_path() if path is None else Path(path)
+        path = default_weights_path(procedural) if path is None else Path(path)
         if not path.is_file():
             raise FileNotFoundError(
                 f"correctives: weights file {str(path)!r} not found (expected a file written by "
