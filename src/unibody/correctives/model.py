@@ -155,7 +155,21 @@ class Correctives(nn.Module):
 
     def activations(self, x6: torch.Tensor) -> torch.Tensor:
         """(B, A, C) activations of :meth:`features` (B, N, 6); exactly 0 where they are 0 (the rest pose)."""
-        return self._mlp(x6) - self._mlp(x6.new_zeros(1, *x6.shape[1:]))
+        return self._mlp(x6) - self._rest_mlp(x6)
+
+    def _rest_mlp(self, x6: torch.Tensor) -> torch.Tensor:
+        """(1, A, C) the MLP at the rest pose: a constant of the parameters, kept between calls
+        while they need no gradient and have not changed (it was a second MLP pass per pose)."""
+        params = (self.w1, self.b1, self.w2, self.b2, self._frozen, self._frozen_value)
+        zero = x6.new_zeros(1, *x6.shape[1:])
+        if torch.is_grad_enabled() and any(p.requires_grad for p in params):
+            return self._mlp(zero)
+        key = (x6.dtype, x6.device, tuple((p.data_ptr(), p._version) for p in params))
+        cached = getattr(self, "_rest_cache", None)
+        if cached is None or cached[0] != key:
+            with torch.no_grad():
+                cached = self._rest_cache = (key, self._mlp(zero))
+        return cached[1]
 
     def displacements_vm(self, x6: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
         """(U, 3, B) rest-space displacements (m) on :attr:`union`, vertex-major, from :meth:`features`.
@@ -167,7 +181,12 @@ class Correctives(nn.Module):
         b = act.shape[0]
         dec = self.decode.to(x6.dtype)
         # One small product per active joint, over its own mask: (3 V_k, 24) @ (24, B).
-        per_mask = torch.cat([dec[3 * s : 3 * e] @ act[:, k].t() for k, (s, e) in enumerate(self._blocks)])
+        if torch.is_grad_enabled() and (act.requires_grad or dec.requires_grad):
+            per_mask = torch.cat([dec[3 * s : 3 * e] @ act[:, k].t() for k, (s, e) in enumerate(self._blocks)])
+        else:  # the same products straight into one buffer (no concatenating copy)
+            per_mask, at = dec.new_empty(dec.shape[0], b), act.permute(1, 2, 0)
+            for k, (s, e) in enumerate(self._blocks):
+                torch.mm(dec[3 * s : 3 * e], at[k], out=per_mask[3 * s : 3 * e])
         out = per_mask.new_zeros(len(self.union), 3, b)
         return out.index_add_(0, self._slot, per_mask.view(-1, 3, b))
 
@@ -256,9 +275,9 @@ class Correctives(nn.Module):
         """
         u, b = len(self.union), mats.shape[3]
         jd = len(self._w_joints)
-        # Rotations as (Jd, [column, pose, row]): the blended rotations then come out in the
-        # (U, B, 3) layout of the vertex-major output, ready to be added to it.
-        rot = mats.index_select(0, self._w_joints)[:, :3].transpose(2, 3).reshape(jd, 9 * b)
+        # Rotations as (Jd, [column, row, pose]), mats' own layout: the blended rotations then
+        # come out as (U, column, row, B), and d (U, column, B) multiplies them along the poses.
+        rot = mats.index_select(0, self._w_joints)[:, :3].reshape(jd, 9 * b)
         w = csr(self._w_crow, self._w_col, self._w_val.to(mats.dtype), (u, jd))
         if torch.is_grad_enabled() and (rot.requires_grad or w.requires_grad):
             blend = w @ rot
@@ -266,9 +285,12 @@ class Correctives(nn.Module):
             blend = rot.new_empty(u, 9 * b)
             for s in range(0, 9 * b, 24):
                 torch.addmm(blend[:, s : s + 24], w, rot[:, s : s + 24], beta=0, out=blend[:, s : s + 24])
-        # One product over (U, 3, B, 3) and a sum over the columns: measured 1.6-2x faster than
-        # three multiply-adds that broadcast d along the innermost axis.
-        moved = (blend.view(u, 3, b, 3) * d[..., None].expand(u, 3, b, 3)).sum(1)  # (U, B, 3)
+        # Three multiply-adds over (U, 3, B), then one copy into the output's (U, B, 3) layout:
+        # measured 1.2x faster at B = 32 than a product over (U, 3, B, 3) broadcasting d along
+        # the rows and a sum over the columns.
+        bl = blend.view(u, 3, 3, b)
+        moved = torch.addcmul(bl[:, 0] * d[:, 0, None], bl[:, 1], d[:, 1, None]).addcmul(bl[:, 2], d[:, 2, None])
+        moved = moved.transpose(1, 2).contiguous()  # (U, B, 3)
         vm = vertices.transpose(0, 1)  # (V, B, 3): the sparse product's own vertex-major storage
         if torch.is_grad_enabled() and (vertices.requires_grad or moved.requires_grad):
             return vm.index_add(0, self.union, moved).transpose(0, 1)
