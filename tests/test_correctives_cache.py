@@ -1,0 +1,56 @@
+"""The correctives' cached rest-pose MLP value follows the parameters, the dtype and autograd."""
+
+from __future__ import annotations
+
+import torch
+
+from conftest import chain_rig
+from unibody.correctives.model import Correctives
+
+
+def _model() -> Correctives:
+    rig = chain_rig()
+    w = rig.dense_skinning_weights()
+    inputs = torch.tensor([[2, 3, -1], [3, 2, 4], [4, 3, -1]])
+    verts = [torch.nonzero(w[:, k] > 0.05).flatten() for k in (2, 3, 4)]
+    model = Correctives(inputs, verts, rig.num_vertices, hidden=8, channels=4, bones=((1, 2), (2, 3)))
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.copy_(0.3 * torch.randn(p.shape, generator=gen))
+    return model.requires_grad_(False)
+
+
+def _uncached(model: Correctives, x6: torch.Tensor) -> torch.Tensor:
+    return model._mlp(x6) - model._mlp(x6.new_zeros(1, *x6.shape[1:]))
+
+
+def test_cache_follows_parameters_and_dtype():
+    model = _model()
+    x6 = 0.4 * torch.randn(5, len(model.needed), 6, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(model.activations(x6), _uncached(model, x6))
+    assert model.activations(torch.zeros_like(x6)).abs().max() == 0
+    with torch.no_grad():  # an in-place update (an optimiser step) must not leave a stale offset
+        model.b2.add_(0.5)
+        model.b1.sub_(0.2)
+    assert torch.equal(model.activations(x6), _uncached(model, x6))
+    assert model.activations(torch.zeros_like(x6)).abs().max() == 0
+    model.freeze(model.needed[:1], torch.full((1, 6), 0.3))  # frozen inputs enter the offset too
+    assert torch.equal(model.activations(x6), _uncached(model, x6))
+    assert model.activations(torch.zeros_like(x6)).abs().max() == 0
+    d = model.double()
+    x64 = x6.double()
+    assert d.activations(x64).dtype == torch.float64
+    assert torch.equal(d.activations(x64), _uncached(d, x64))
+
+
+def test_no_cache_while_training():
+    """With trainable parameters the offset is computed live, so gradients reach them through it."""
+    model = _model().requires_grad_(True)
+    x6 = 0.4 * torch.randn(4, len(model.needed), 6, generator=torch.Generator().manual_seed(2))
+    model.activations(x6).sum().backward()
+    live = model.b2.grad.clone()
+    model.zero_grad()
+    _uncached(model, x6).sum().backward()
+    assert torch.allclose(live, model.b2.grad)
+    assert live.abs().sum() > 0
