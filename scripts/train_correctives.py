@@ -3,16 +3,22 @@
 Two resumable stages, both on one thread by default:
 
 1. ``generate``: draws identities of the native PCA (children to adults) and poses (the seeded
-   generator with deep bends plus randomised stress families), poses each identity with LBS,
-   relaxes it with the teacher and stores the rest-space targets in chunk files under
-   ``--data`` (one per identity; existing chunks are kept, so a rerun resumes).
+   generator with deep bends plus randomised stress families and, with ``--motions DIR``, frames
+   of real motions: the ``unibody.motion/1`` files under DIR, e.g. the CMU database converted by
+   ``unibody convert ... --to motion``), poses each identity with LBS, relaxes it with the
+   teacher and stores both rest-space targets in chunk files under ``--data`` (one per identity;
+   existing chunks are kept, so a rerun resumes): ``d`` for the plain rig and ``d_twist`` for
+   the procedural-twist rig (:func:`~unibody.correctives.training.twist_targets`).
 2. ``train``: fits :class:`unibody.correctives.model.Correctives` (77 rest-relative joint
-   rotations -> J x 24 activations -> sparse rest-space displacements) with Adam, checkpointing
-   to ``--data/checkpoint.pt`` (``--resume`` continues), and writes the shipped weights with the
-   command, seed and data recipe (``--out``).
+   rotations -> J x 24 activations -> sparse rest-space displacements) with AdamW on the
+   ``--target`` (``plain``: ``correctives.pt``, ``twist``: ``correctives_twist.pt``),
+   checkpointing to ``--data/checkpoint_<target>.pt`` (``--resume`` continues), and writes the
+   shipped weights with the command, seed and data recipe (``--out``).
 
-    OMP_NUM_THREADS=1 python scripts/train_correctives.py generate --identities 160 --poses 16
-    OMP_NUM_THREADS=1 python scripts/train_correctives.py train --minutes 25 --resume
+    OMP_NUM_THREADS=1 python scripts/train_correctives.py generate --identities 280 --poses 12 \
+        --motions build/cmu_motions --data build/correctives-data
+    OMP_NUM_THREADS=1 python scripts/train_correctives.py train --target plain --data build/correctives-data
+    OMP_NUM_THREADS=1 python scripts/train_correctives.py train --target twist --data build/correctives-data
 """
 
 from __future__ import annotations
@@ -27,9 +33,10 @@ import torch
 from tqdm import tqdm
 
 from unibody import BodyLayer
-from unibody.correctives.model import Correctives
+from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES
-from unibody.correctives.training import TeacherSetup, draw_identities, size_of, teacher_targets
+from unibody.correctives.training import TeacherSetup, draw_identities, size_of, teacher_targets, twist_targets
+from unibody.motion import load_motion
 from unibody.rig import JOINT_NAMES
 from unibody.synth.poses import keyed_generator, mirror_rotation, sample_poses
 
@@ -55,20 +62,70 @@ def draw_poses(n: int, generator: torch.Generator) -> torch.Tensor:
     return base
 
 
+FINGERS = [i - 1 for i, n in enumerate(JOINT_NAMES) if "Hand" in n and not n.endswith("Hand")]
+"""Pose rows (joints 1..77) of the finger joints: straight (0, as in the T-pose) in every training pose."""
+
+
+def load_motions(root: Path) -> list[tuple[str, torch.Tensor]]:
+    """Every ``*.motion.npz`` under ``root`` (sorted), read by :func:`unibody.motion.load_motion`:
+    (path relative to root, (T, 77, 3) T-pose-relative axis-angle poses)."""
+    files = sorted(Path(root).rglob("*.motion.npz"))
+    if not files:
+        raise SystemExit(f"--motions: no *.motion.npz files under {root} (unibody convert ... --to motion)")
+    return [(str(f.relative_to(root)), torch.from_numpy(load_motion(f).pose)) for f in files]
+
+
+def motion_frames(
+    n: int, generator: torch.Generator, motions: list[tuple[str, torch.Tensor]]
+) -> tuple[torch.Tensor, list[str]]:
+    """(n, 77, 3) frames of uniformly drawn motions (a uniform frame of each), fingers straight,
+    and their sources ``"file:frame"``. The Hips rotation is kept (the teacher and the targets
+    do not depend on it); the root translation is not used."""
+    poses, sources = [], []
+    for _ in range(n):
+        name, pose = motions[int(torch.randint(len(motions), (1,), generator=generator))]
+        f = int(torch.randint(len(pose), (1,), generator=generator))
+        poses.append(pose[f].clone())
+        sources.append(f"{name}:{f}")
+    out = torch.stack(poses) if poses else torch.zeros(0, 77, 3)
+    out[:, FINGERS] = 0.0
+    return out, sources
+
+
 def generate(args: argparse.Namespace) -> None:
     data = Path(args.data)
     data.mkdir(parents=True, exist_ok=True)
     layer = BodyLayer.from_pca()
     setup = TeacherSetup(layer)
     coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-identities", args.seed))
+    motions = load_motions(Path(args.motions)) if args.motions else []
+    k = round(args.poses * args.motion_share) if motions else 0
     todo = [i for i in range(args.identities) if not (data / f"chunk_{i:05d}.pt").exists()]
-    print(f"teacher region: {len(setup.union)} vertices; {len(todo)} of {args.identities} identities to do")
+    print(f"teacher region: {len(setup.union)} vertices; {len(todo)} of {args.identities} identities to do; "
+          f"{k} of {args.poses} poses from {len(motions)} motions")  # fmt: skip
     for i in tqdm(todo, desc="teacher", unit="identity", smoothing=0.1):
         prepared = layer.prepare_identity(coeffs[i : i + 1])
-        pose = draw_poses(args.poses, keyed_generator("correctives-poses", args.seed, i))
-        _, _, d = teacher_targets(layer, prepared, pose, setup)
+        pose = draw_poses(args.poses - k, keyed_generator("correctives-poses", args.seed, i))
+        frames, sources = motion_frames(k, keyed_generator("correctives-motion-frames", args.seed, i), motions)
+        pose = torch.cat([pose, frames])
+        _, teacher, d = teacher_targets(layer, prepared, pose, setup, iterations=args.iterations)
+        d_twist = twist_targets(prepared, pose, teacher, setup)
         rel = Correctives.rest_relative(layer.local_rotations(pose), prepared.rest_rotations, layer.parents)
-        chunk = {"rel": rel.float(), "d": d.float(), "size": size_of(prepared.rest_joints).float(), "coeffs": coeffs[i]}
+        chunk = {
+            "rel": rel.float(),
+            "d": d.float(),
+            "d_twist": d_twist.float(),
+            "size": size_of(prepared.rest_joints).float(),
+            "coeffs": coeffs[i],
+            "sources": ["draw_poses"] * (args.poses - k) + sources,
+            "recipe": {
+                "seed": args.seed,
+                "iterations": args.iterations,
+                "motions": str(args.motions or ""),
+                "motion_files": len(motions),
+                "motion_frames": sum(len(p) for _, p in motions),
+            },
+        }
         tmp = data / f"chunk_{i:05d}.tmp"
         torch.save(chunk, tmp)
         tmp.rename(data / f"chunk_{i:05d}.pt")
@@ -100,40 +157,74 @@ def _validate(model: Correctives, rel: torch.Tensor, size: torch.Tensor, d: torc
     return {**best, "last": mm}
 
 
+def _recipe(chunks: list[dict], held: int, seed: int, target: str) -> str:
+    """The data recipe of the chunks, for the weights' meta."""
+    recipe = chunks[0].get("recipe", {"iterations": 6, "motions": "", "motion_files": 0, "motion_frames": 0})
+    sources = [s for c in chunks for s in c.get("sources", ["draw_poses"] * len(c["rel"]))]
+    used = [s for s in sources if s != "draw_poses"]
+    motions = ""
+    if used:
+        motions = (
+            f" + {len(used)} frames ({len(set(used))} distinct) of {len({s.rsplit(':', 1)[0] for s in used})} of the "
+            f"{recipe['motion_files']} motions ({recipe['motion_frames']} frames) under {recipe['motions']} "
+            "(uniform motion, uniform frame, fingers straight; "
+            f"keyed_generator('correctives-motion-frames', {seed}, i))"
+        )
+    rig = "the procedural-twist rig (LBS + twist joints)" if target == "twist" else "plain LBS"
+    return (
+        f"{len(chunks)} native-PCA identities (16 components N(0,1), stature U(1.0, 1.95) m, "
+        f"keyed_generator('correctives-identities', {seed})) x {len(chunks[0]['rel'])} poses each, in all "
+        f"{len(sources) - len(used)} from draw_poses (sample_poses with bend 0.3, chamber 0.1, fold 0.15 + "
+        f"randomised stress families; keyed_generator('correctives-poses', {seed}, i)){motions}; teacher: "
+        f"spokes-and-rims ARAP, {recipe['iterations']} iterations from LBS + procedural twist, joint regions grown "
+        f"5 rings (wrists and ankles: the whole forearm or shin), LBS boundary; targets: rest-space displacements "
+        f"that {rig} maps onto the teacher; last {held} identities held out for validation"
+    )
+
+
+def _freeze_fingers(model: Correctives, rel: torch.Tensor) -> None:
+    """Hold the finger inputs (straight in every training pose) at their training mean."""
+    fingers = torch.tensor([j + 1 for j in FINGERS])
+    ids = model.needed[torch.isin(model.needed, fingers)]
+    if len(ids):
+        x6 = model.features(rel[:, ids - 1])
+        model.freeze(ids, x6.mean(0))
+
+
 def train(args: argparse.Namespace, command: str) -> None:
     data = Path(args.data)
     files = sorted(data.glob("chunk_*.pt"))
     if not files:
         raise SystemExit(f"--data: no chunk_*.pt files in {data}; run the generate stage first")
+    key = "d_twist" if args.target == "twist" else "d"
     chunks = [torch.load(f, weights_only=True) for f in files]
+    if key not in chunks[0]:
+        raise SystemExit(f"--target {args.target}: the chunks in {data} have no {key!r} (made by an older generate)")
     held = max(1, len(chunks) // 20)  # the last 5 % of the identities: validation only
     rel = torch.cat([c["rel"] for c in chunks[:-held]])
     size = torch.cat([c["size"].expand(len(c["rel"])) for c in chunks[:-held]])
-    d = torch.cat([c["d"] for c in chunks[:-held]])
+    d = torch.cat([c[key] for c in chunks[:-held]])
     v_rel = torch.cat([c["rel"] for c in chunks[-held:]])
     v_size = torch.cat([c["size"].expand(len(c["rel"])) for c in chunks[-held:]])
-    v_d = torch.cat([c["d"] for c in chunks[-held:]])
+    v_d = torch.cat([c[key] for c in chunks[-held:]])
     size_ref = float(size.mean())
     layer = BodyLayer.from_pca()
     setup = TeacherSetup(layer)
     meta = {
         "command": command,
         "seed": args.seed,
-        "data": (
-            f"{len(chunks)} native-PCA identities (16 components N(0,1), stature U(1.0, 1.95) m, "
-            f"keyed_generator('correctives-identities', {args.seed})) x {len(chunks[0]['rel'])} poses each "
-            f"(draw_poses: sample_poses with bend 0.3, chamber 0.1, fold 0.15 + randomised stress families; "
-            f"keyed_generator('correctives-poses', {args.seed}, i)); teacher: spokes-and-rims ARAP, 6 "
-            f"iterations from LBS + procedural twist, joint regions grown 5 rings (wrists and ankles: the "
-            f"whole forearm or shin), LBS boundary; last {held} identities held out for validation"
-        ),
-        "generate": f"python scripts/train_correctives.py generate --identities {len(chunks)} --seed {args.seed}",
+        "target": args.target,
+        "data": _recipe(chunks, held, args.seed, args.target),
+        "teacher_iterations": int(chunks[0].get("recipe", {}).get("iterations", 6)),
+        "generate": args.generate_command
+        or f"python scripts/train_correctives.py generate --identities {len(chunks)} --seed {args.seed}",
     }
     model = build_model(layer, setup, size_ref, meta, args.hidden)
     if not torch.equal(model.union, setup.union):
         raise SystemExit("internal: the model's vertex union differs from the teacher's")
+    _freeze_fingers(model, rel)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
-    ckpt = data / "checkpoint.pt"
+    ckpt = data / f"checkpoint_{args.target}.pt"
     step, elapsed, best = 0, 0.0, {"mm": float("inf"), "last": float("inf"), "state": None}
     if args.resume and ckpt.exists():
         state = torch.load(ckpt, weights_only=True)
@@ -188,6 +279,8 @@ def train(args: argparse.Namespace, command: str) -> None:
                 f"AdamW lr {args.lr} wd {args.weight_decay}, hidden {args.hidden}, cosine over "
                 f"{args.minutes} min, batch {args.batch}; best held-out state"
             ),
+            "frozen": "finger inputs of the wrist activations held at their training mean (straight fingers in every "
+            "training pose)",
         }
     )
     print(f"{step} steps; held-out rest-space error mean {err.mean() * 1e3:.2f} mm, max {err.max() * 1e3:.2f} mm")
@@ -207,7 +300,12 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=16)
     parser.add_argument("--minutes", type=float, default=25.0)
     parser.add_argument("--resume", action="store_true")
-    parser.add_argument("--out", default="src/unibody/correctives/data/correctives.pt")
+    parser.add_argument("--out", default=None, help="default: the shipped weights file of --target")
+    parser.add_argument("--target", choices=("plain", "twist"), default="plain", help="the rig the correctives serve")
+    parser.add_argument("--motions", default=None, help="directory of unibody.motion/1 files (generate)")
+    parser.add_argument("--motion-share", type=float, default=0.5, help="share of each identity's poses from --motions")
+    parser.add_argument("--iterations", type=int, default=6, help="ARAP iterations of the teacher (generate)")
+    parser.add_argument("--generate-command", default="", help="the generate command(s) that made --data, for the meta")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--lr", type=float, default=3e-3)
     parser.add_argument("--batch", type=int, default=32)
@@ -217,6 +315,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
+    if args.out is None:
+        args.out = str(Path("src/unibody/correctives/data") / default_weights_path(args.target == "twist").name)
     if args.stage == "generate":
         generate(args)
     else:

@@ -5,6 +5,11 @@ The teacher (:mod:`.teacher`) returns posed vertices; the correctives live in th
 vertex, ``LBS(v + d) = LBS(v) + M_v d`` with ``M_v = sum_k w_vk R_k`` the blended rotation, so the
 exact rest-space target of a posed correction ``r`` is ``d = M_v^-1 r`` (``M_v`` is invertible
 below a 180 deg blend; targets are clamped to :data:`MAX_TARGET_M`).
+
+With procedural twist joints the displaced rest mesh is skinned by the twist rig instead, whose
+blended rotation ``M_t`` differs; :func:`twist_targets` gives the twist rig's targets
+``d_twist = M_t^-1 (teacher - LBS_twist)`` of the same teacher meshes, so the correctives of
+that rig do not add the twist correction a second time.
 """
 
 from __future__ import annotations
@@ -15,7 +20,15 @@ import torch
 from .model import size_of
 from .teacher import Arap, teacher_region
 
-__all__ = ["MAX_TARGET_M", "draw_identities", "size_of", "teacher_targets", "TeacherSetup"]
+__all__ = [
+    "MAX_TARGET_M",
+    "blended_rotations",
+    "draw_identities",
+    "size_of",
+    "teacher_targets",
+    "twist_targets",
+    "TeacherSetup",
+]
 
 MAX_TARGET_M = 0.15
 """Largest rest-space displacement kept as a target (m)."""
@@ -63,6 +76,15 @@ class TeacherSetup:
             from ..rig import Rig
 
             self.twist = BodyLayer(Rig.canonical(), procedural=True).to(layer.tpose_orient.dtype)
+        self._twist64 = None
+
+    def twist64(self):  # noqa: ANN201 (a BodyLayer)
+        """A float64 copy of :attr:`twist` (made once; :attr:`twist` keeps the layer's dtype)."""
+        if self._twist64 is None:
+            import copy
+
+            self._twist64 = copy.deepcopy(self.twist).double()
+        return self._twist64
 
 
 def teacher_targets(
@@ -89,8 +111,62 @@ def teacher_targets(
         u = setup.union
         w = torch.from_numpy(setup.weights[u.numpy()])  # (U, J)
         blended = torch.einsum("uj,bjrc->burc", w, mats[..., :3].double())  # (B, U, 3, 3)
-        r = (teacher - lbs)[:, u]
-        d = torch.linalg.solve(blended, r[..., None]).squeeze(-1)
-        n = d.norm(dim=-1, keepdim=True)
-        d = d * (MAX_TARGET_M / n.clamp_min(MAX_TARGET_M))
+        d = _rest_space((teacher - lbs)[:, u], blended)
     return lbs, teacher, d
+
+
+def _rest_space(r: torch.Tensor, blended: torch.Tensor) -> torch.Tensor:
+    """(B, U, 3) ``M^-1 r`` of posed corrections r (B, U, 3), blended rotations (B, U, 3, 3); clamped."""
+    d = torch.linalg.solve(blended, r[..., None]).squeeze(-1)
+    n = d.norm(dim=-1, keepdim=True)
+    return d * (MAX_TARGET_M / n.clamp_min(MAX_TARGET_M))
+
+
+def blended_rotations(layer, prepared, pose: torch.Tensor, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # noqa: ANN001
+    """The posed meshes of ``layer`` (any rig, twist joints included) and its blended rotations.
+
+    Skinning is affine in the rest vertex, ``LBS(v + e) = LBS(v) + M_v e``, whatever joints and
+    weights the rig skins with, so the columns of ``M_v`` are the moves of the posed mesh when the
+    whole rest mesh is shifted by the unit vectors (exact up to rounding): no rig internals needed.
+
+    Args:
+        layer: a BodyLayer (plain or procedural); prepared: the identity (batch 1); pose: (B, 77, 3);
+        vertices: (U,) int64, the vertices whose ``M_v`` is wanted.
+
+    Returns:
+        ``(posed (B, V, 3), blended (B, U, 3, 3))``, in the layer's dtype.
+    """
+    from ..body import PreparedIdentity
+
+    p = prepared
+    posed = layer.pose(p, pose, correctives=False).vertices
+    cols = []
+    for c in range(3):
+        shift = p.rest_vertices.new_zeros(3)
+        shift[c] = 1.0
+        moved = PreparedIdentity(p.rest_vertices + shift, p.rest_rotations, p.rest_joints, p.offsets)
+        cols.append((layer.pose(moved, pose, correctives=False).vertices - posed)[:, vertices])
+    return posed, torch.stack(cols, -1)
+
+
+def twist_targets(prepared, pose: torch.Tensor, teacher: torch.Tensor, setup: TeacherSetup) -> torch.Tensor:  # noqa: ANN001
+    """(B, U, 3) the twist rig's rest-space targets on ``setup.union``: ``M_t^-1 (teacher - LBS_twist)``.
+
+    ``LBS_twist`` and ``M_t`` are the procedural layer ``setup.twist``'s posed mesh and blended
+    rotations (:func:`blended_rotations`, in float64), so that rig maps ``rest + d_twist`` onto the teacher.
+
+    Args:
+        prepared: the identity (batch 1); pose: (B, 77, 3); teacher: (B, V, 3) float64, from
+            :func:`teacher_targets` of the same identity and pose.
+    """
+    if setup.twist is None:
+        raise ValueError("twist_targets: the TeacherSetup has no twist layer (built with twist_start=False)")
+    from ..body import PreparedIdentity
+
+    with torch.no_grad():
+        p = PreparedIdentity(*(t.double() for t in (prepared.rest_vertices, prepared.rest_rotations,
+                                                    prepared.rest_joints, prepared.offsets)))  # fmt: skip
+        twist = setup.twist64()
+        posed, blended = blended_rotations(twist, p, pose.double(), setup.union)
+        u = setup.union
+        return _rest_space((teacher - posed)[:, u], blended)
