@@ -56,7 +56,7 @@ import torch
 
 from unibody.mocap.c3d import MarkerSequence, read_markers
 from unibody.mocap.corrupt import MocapBatch, break_trajectories, corrupt_frames
-from unibody.mocap.labeler import Labeler, frame_probabilities, predict
+from unibody.mocap.labeler import Labeler, frame_probabilities, predict, sequence_probabilities
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.metrics import labeling_scores
 from unibody.mocap.pipeline import label_sequence, load_labeler, render_solution, solve_sequence
@@ -188,7 +188,8 @@ JOINS = 10  # wrongly joined trajectory pairs per file (the "joined" protocol)
 
 def tracklet(model: Labeler, marked, ghosts, gen: torch.Generator, rng) -> dict[str, tuple]:
     """Broken sequence (:func:`broken_sequence`), per-frame labels, then the sequence's labels:
-    the majority vote per column (``vote``) and :func:`settle_tracklets` (``tracklet``); then the
+    the majority vote per column (``vote``) and :func:`settle_tracklets` (``tracklet``, on
+    ``sequence_probabilities`` as ``label_sequence`` does: retries only where they can matter); then the
     same sequence with :data:`JOINS` wrongly joined trajectory pairs (``joined_*``)."""
     null = model.num_labels
     broken, truth = broken_sequence(marked, ghosts, rng, null)
@@ -200,7 +201,9 @@ def tracklet(model: Labeler, marked, ghosts, gen: torch.Generator, rng) -> dict[
         tru = torch.from_numpy(np.ascontiguousarray(tru))
         rows[f"{key}frame"] = (fl.labels[vis], tru[vis])
         rows[f"{key}vote"] = (label_tracklets(fl.labels, vis, null)[vis], tru[vis])
-        rows[f"{key}tracklet"] = (settle_tracklets(fl.prob, vis)[vis], tru[vis])
+        # settled as label_sequence does: from sequence_probabilities (retries only where they can matter)
+        seq_prob = sequence_probabilities(model, torch.as_tensor(pts, dtype=torch.float32)).prob
+        rows[f"{key}tracklet"] = (settle_tracklets(seq_prob, vis)[vis], tru[vis])
     return rows
 
 
@@ -342,7 +345,7 @@ def body_section(root: Path, models: dict[str, Labeler], seed: int) -> None:
             broken, col_truth = broken_sequence(marked, ghosts, np.random.default_rng(seed), null)
             broken_t = torch.as_tensor(broken)
             vis = torch.isfinite(broken_t).all(-1)
-            prob = frame_probabilities(model, broken_t.float()).prob
+            prob = sequence_probabilities(model, broken_t.float()).prob
             track = settle_tracklets(prob, vis)
             t = time.perf_counter()
             checked, _ = relabel(pts, pred, layout, fps=seq.rate)

@@ -56,6 +56,7 @@ from .sinkhorn import log_sinkhorn
 
 if TYPE_CHECKING:
     from .corrupt import MocapBatch
+    from .tracklets import TrackletConfig
 
 __all__ = [
     "LABELER_FORMAT",
@@ -67,6 +68,7 @@ __all__ = [
     "label_frames",
     "labeling_loss",
     "predict",
+    "sequence_probabilities",
 ]
 
 LABELER_FORMAT = "unibody.labeler/1"
@@ -599,10 +601,13 @@ class FrameLabels:
             also for missing points).
         prob: (T, N, L+1) float32, each point's row of the plan (probabilities of the L labels
             and null; they sum to 1); zeros for missing points.
+        surety: (T,) float32, each frame's mean confidence in its labels (what a retry is
+            decided on; 0 for a frame without points).
     """
 
     labels: torch.Tensor
     prob: torch.Tensor
+    surety: torch.Tensor
 
 
 @torch.no_grad()
@@ -632,6 +637,36 @@ def frame_probabilities(
     return _label_frames(model, points, batch, True, retry)
 
 
+@torch.no_grad()
+def sequence_probabilities(
+    model: Labeler, points: torch.Tensor, batch: int = 256, *, config: TrackletConfig | None = None
+) -> FrameLabels:
+    """:func:`frame_probabilities` of a sequence whose columns will be settled (:func:`~.tracklets.settle_tracklets`).
+
+    A retry (the model's ``retry`` confidence) orients an unsure frame again, at about ten times
+    a frame's cost, and on a whole sequence most unsure frames cannot change any column's
+    settled label. So every frame is labelled once without retries; the columns' spans and
+    their evidence are formed (:func:`~.tracklets.undecided_frames`); only the unsure frames
+    with a point in a span whose lead is small enough for them to overturn are labelled again,
+    with retries. Same arguments as :func:`frame_probabilities`; ``config`` is the tracklets'.
+    """
+    from .tracklets import undecided_frames
+
+    retry = model.config.retry if model.orienter is not None else 0.0
+    first = _label_frames(model, points, batch, True, 0.0)
+    visible = torch.isfinite(points).all(dim=2)
+    unsure = (first.surety < retry) & visible.any(dim=1)
+    if not retry or not bool(unsure.any()):
+        return first
+    redo = undecided_frames(first.prob, visible.cpu(), unsure.cpu(), config).nonzero()[:, 0].to(points.device)
+    if not len(redo):
+        return first
+    again = _label_frames(model, points[redo], batch, True, retry)
+    labels, prob, surety = first.labels.clone(), first.prob.clone(), first.surety.clone()
+    labels[redo], prob[redo], surety[redo] = again.labels, again.prob, again.surety
+    return FrameLabels(labels, prob, surety)
+
+
 def _label_frames(
     model: Labeler, points: torch.Tensor, batch: int, keep_prob: bool, retry: float | None = None
 ) -> FrameLabels:
@@ -643,6 +678,7 @@ def _label_frames(
     out = torch.full(visible.shape, model.num_labels, dtype=torch.long, device=points.device)
     shape = (*visible.shape, model.num_labels + 1) if keep_prob else (0, 0, 0)
     prob = torch.zeros(shape, dtype=torch.float32, device=points.device)
+    surety = torch.zeros(visible.shape[0], dtype=torch.float32, device=points.device)
     was_training = model.training
     model.eval()
     try:
@@ -656,11 +692,12 @@ def _label_frames(
             pts = points[start : start + batch].gather(1, order[..., None].expand(-1, -1, 3))
             pts = torch.where(mask[..., None], pts, 0.0)
             plan = model(pts, mask, retry=retry)
-            labels, _ = predict(plan, mask)
+            labels, conf = predict(plan, mask)
+            surety[start : start + batch] = conf.sum(dim=1) / mask.sum(dim=1).clamp_min(1)
             out[start : start + batch].scatter_(1, order, labels)
             if keep_prob:
                 rows = torch.where(mask[..., None], plan[:, :-1].exp(), 0.0).float()
                 prob[start : start + batch].scatter_(1, order[..., None].expand(-1, -1, rows.shape[2]), rows)
     finally:
         model.train(was_training)
-    return FrameLabels(out, prob)
+    return FrameLabels(out, prob, surety)

@@ -38,7 +38,7 @@ import torch
 from .c3d import MarkerSequence
 from .coincident import COINCIDENT_TOL, find_coincident
 from .frames import check_marker_units, lab_to_unibody
-from .labeler import Labeler, frame_probabilities, label_frames
+from .labeler import Labeler, label_frames, sequence_probabilities
 from .layout import MarkerLayout
 from .tracklets import labelled_markers, settle_tracklets
 
@@ -275,7 +275,7 @@ def label_sequence(
 
             frame, _ = relabel(pts, frame, layout, fps=seq.rate, config=body_config, progress=progress)
     else:  # the columns' evidence over the sequence (far points: gaps)
-        prob = frame_probabilities(model, pts.to(model.bin_score), batch=batch).prob.cpu()
+        prob = sequence_probabilities(model, pts.to(model.bin_score), batch=batch).prob.cpu()
         if layout is None:
             frame = settle_tracklets(prob, torch.from_numpy(near))
         else:

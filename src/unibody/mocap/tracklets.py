@@ -20,6 +20,9 @@ labeler's per-point label probabilities (:func:`~unibody.mocap.labeler.frame_pro
    two spans of a frame still share a label, the one with more evidence for it keeps it and
    the other takes the frame's matching label if that is free, else null.
 
+:func:`undecided_frames` says which unsure frames could still overturn a span's label (the
+only ones :func:`~unibody.mocap.labeler.sequence_probabilities` orients again).
+
 The body check (:func:`~unibody.mocap.relabel.relabel_tracklets`) adds the labels of a body
 solved from these as more evidence, so it decides close calls.
 
@@ -48,6 +51,7 @@ __all__ = [
     "settle_tracklets",
     "tracklet_labels",
     "tracklet_votes",
+    "undecided_frames",
 ]
 
 
@@ -336,6 +340,40 @@ def settle_tracklets(
                 row[i] = null
         out[f] = row
     return torch.from_numpy(out).to(visible.device)
+
+
+def undecided_frames(
+    prob: torch.Tensor, visible: torch.Tensor, unsure: torch.Tensor, config: TrackletConfig | None = None
+) -> torch.Tensor:
+    """(T,) bool: the ``unsure`` frames with a point in a span whose label they could overturn.
+
+    Span s's best label leads its runner-up by ``E[s, best] - E[s, second]`` (the evidence of
+    :func:`settle_tracklets`). Relabelling one frame moves that lead by at most 2 (a point's
+    probabilities sum to 1), so a span with ``u`` unsure frames is undecided while its lead is
+    at most ``2 u``; the others keep their label whatever those frames become.
+
+    Args:
+        prob: (T, N, L+1) label probabilities; visible: (T, N) bool; unsure: (T,) bool.
+    """
+    sizes: dict[str, int] = {}
+    check_shape(prob, "T N C", name="prob", sizes=sizes)
+    check_shape(visible, "T N", name="visible", sizes=sizes)
+    check_shape(unsure, "T", name="unsure", sizes=sizes)
+    span = column_spans(prob, visible, config).cpu().numpy()
+    vis = visible.cpu().numpy() & (span >= 0)
+    low = unsure.cpu().numpy().astype(bool)
+    if not (vis.any() and low.any()):
+        return torch.zeros(vis.shape[0], dtype=torch.bool, device=unsure.device)
+    s_count = int(span.max()) + 1
+    ev = np.zeros((s_count, prob.shape[2]))
+    np.add.at(ev, span[vis], prob.detach().cpu().numpy().astype(np.float64)[vis])
+    top = np.sort(ev, axis=1)
+    lead = top[:, -1] - top[:, -2]
+    in_low = vis & low[:, None]
+    count = np.bincount(span[in_low], minlength=s_count)
+    open_span = lead <= 2.0 * count
+    out = low & (vis & open_span[np.maximum(span, 0)]).any(1)
+    return torch.from_numpy(out).to(unsure.device)
 
 
 def _clashing(labels: np.ndarray, null: int) -> np.ndarray:
