@@ -1,7 +1,7 @@
 """Mocap labeling and body solve on real, labelled C3D files (paper 003 protocol; evaluation only).
 
     OMP_NUM_THREADS=2 python benchmarks/mocap.py [--evaldata ../shared/evaldata]
-        [--sections label body speed solve copies] [--files KEY ...] [--retry R] [--bf16]
+        [--sections label body speed solve copies retry] [--files KEY ...] [--retry R] [--bf16]
         [--session pycgm=build/s2_pycgm/labeler.pt tennis=build/s2_tennis/labeler.pt]
 
 Labels are hidden from the labeler and used only to score it. Files: CMU 85_02, 85_12, 135_02
@@ -40,6 +40,9 @@ points in a file are real ghosts (truth: null).
 - **copies** (not in the default sections): ``label_sequence`` on each whole file and on the file
   with three more columns that copy three markers exactly; a copy is right when it has its
   original's label (``unibody.mocap.coincident``).
+- **retry** (not in the default sections): ``label_sequence`` on each whole file with every
+  unsure frame retried (the path before) and with only the frames that could change a settled
+  span retried (``sequence_probabilities``): accuracy, frames retried, CPU s, labels that differ.
 - **solve**: the body solve on the files' own labels: mean / median marker residual,
   fraction of frames solved, frames/s of the whole solve; a PNG of one solved frame.
 """
@@ -399,6 +402,52 @@ def copies_section(root: Path, models: dict[str, Labeler]) -> None:
                   f"{times[0]:.1f} / {times[1]:.1f} |", flush=True)  # fmt: skip
 
 
+def retry_section(root: Path, models: dict[str, Labeler]) -> None:
+    """``label_sequence`` on each whole file (its own points, no added noise) two ways: every
+    unsure frame retried (``frame_probabilities``, the path before) and only the unsure frames
+    that could change a settled span (``sequence_probabilities``, what it does now); accuracy /
+    F1 of every point, frames retried, CPU s, and the points whose settled label differs."""
+    from unittest import mock
+
+    import unibody.mocap.pipeline as pipeline
+    from unibody.mocap.tracklets import undecided_frames
+
+    print("\n## Retries on whole files (label_sequence: every unsure frame vs the undecided ones only)")
+    print("| file | model | frames | unsure frames | retried now | accuracy / F1: all retried | now "
+          "| points labelled differently | CPU s: all retried / now |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, files in FILES.items():
+        model, null = models[name], models[name].num_labels
+        for rel in files:
+            seq = read(root / rel)
+            truth = np.array([model.label_names.index(x) if x in model.label_names else null for x in seq.labels])
+            vis = torch.from_numpy(seq.visible)
+            tru = torch.from_numpy(np.broadcast_to(truth, vis.shape).copy())
+            counts = {}
+
+            def counted(prob, visible, unsure, config=None, _c=counts):
+                out = undecided_frames(prob, visible, unsure, config)
+                _c["unsure"], _c["redo"] = int(unsure.sum()), int(out.sum())
+                return out
+
+            outs, cells, times = [], [], []
+            for every in (True, False):
+                t = time.process_time()
+                if every:
+                    with mock.patch.object(pipeline, "sequence_probabilities", frame_probabilities):
+                        out = label_sequence(seq, model)
+                else:
+                    with mock.patch("unibody.mocap.tracklets.undecided_frames", counted):
+                        out = label_sequence(seq, model)
+                times.append(time.process_time() - t)
+                outs.append(torch.from_numpy(out.point_labels))
+                cells.append(fmt(labeling_scores(outs[-1][vis], tru[vis], null=null)))
+            differ = int((outs[0] != outs[1])[vis].sum())
+            print(f"| {Path(rel).stem} | {name} | {seq.num_frames} | {counts.get('unsure', 0)} | {counts.get('redo', 0)} "
+                  f"| {cells[0]} | {cells[1]} | {differ} of {int(vis.sum())} | {times[0]:.1f} / {times[1]:.1f} |",
+                  flush=True)  # fmt: skip
+
+
 def _gemm_rate(rounds: int) -> str:
     """float32 GFLOP/s of the labeler's widest product (a 256-frame pass's q/k/v projection), best / median."""
     x, w, bias = torch.randn(256 * 44, 96), torch.randn(96, 288), torch.randn(288)
@@ -511,6 +560,8 @@ def main() -> None:
         body_section(args.evaldata, models, args.seed)
     if "copies" in args.sections:
         copies_section(args.evaldata, models)
+    if "retry" in args.sections:
+        retry_section(args.evaldata, models)
     if "speed" in args.sections:
         speed_section(args.evaldata, models, args.seed)
     if "solve" in args.sections:
