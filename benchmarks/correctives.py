@@ -1,15 +1,22 @@
 """Pose correctives (issue 40): plain LBS, LBS + procedural twist, the teacher and the correctives
-MLP (alone and with twist) on seeded stress poses x held-out identities.
+MLP (alone, and on the twist rig with the weights trained for it) on seeded stress poses x
+held-out identities.
 
 Measures (:mod:`unibody.correctives.metrics`): edge strain and dihedral change in the joint
 regions (mean, P95), limb-segment volume / rest, the smallest forearm cross-section / rest at a
 150 deg hand twist, self-intersecting triangle pairs (trunk and limbs; the first
-``--intersect-identities`` identities), the MLP against the teacher (mm), the change the MLP
-makes at small poses (every joint within 0.2 rad of the rest pose, and of the T-pose), the
+``--intersect-identities`` identities), the MLP against the teacher (mm, both rigs), the change
+the MLP makes at small poses (every joint within 0.2 rad of the rest pose, and of the T-pose;
+both rigs), the
 cost of posing with correctives at batch 1 and 32 (float32, one thread, best of 5 x 20 calls),
 and what pose inversion (which models plain LBS) leaves on meshes made with correctives.
 
     OMP_NUM_THREADS=1 python benchmarks/correctives.py [--identities 10] [--png docs/correctives.png]
+
+The "MLP + twist" row poses with ``BodyLayer.from_pca(procedural=True)`` and the twist-rig
+weights (``--weights-twist``, default the shipped ``correctives_twist.pt``); the teacher row
+relaxes with the ARAP iterations the plain weights were trained with (their meta), unless
+``--teacher-iterations`` says otherwise.
 """
 
 from __future__ import annotations
@@ -104,6 +111,10 @@ def picture(layer: BodyLayer, path: str) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", default=None, help="correctives weights (default: the shipped ones)")
+    parser.add_argument(
+        "--weights-twist", default=None, help="the twist rig's correctives (default: the shipped correctives_twist.pt)"
+    )
+    parser.add_argument("--teacher-iterations", type=int, default=None, help="default: the plain weights' meta, or 6")
     parser.add_argument("--identities", type=int, default=10)
     parser.add_argument("--intersect-identities", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
@@ -116,27 +127,19 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     model = Correctives.load(args.weights)
+    model_twist = Correctives.load(args.weights_twist, procedural=True)
+    if args.teacher_iterations is None:
+        args.teacher_iterations = int(model.meta.get("teacher_iterations", 6))
     layer = BodyLayer.from_pca(correctives=model).to(args.device)
-    print(
-        f"correctives: {len(model.union)} vertices, {model.num_active} active joints; {model.meta.get('command', '')}"
-    )
+    twist = BodyLayer.from_pca(procedural=True, correctives=model_twist).to(args.device)
+    for tag, m in (("plain rig", model), ("twist rig", model_twist)):
+        print(f"correctives ({tag}): {len(m.union)} vertices, {m.num_active} active joints; "
+              f"{m.meta.get('command', '')}")  # fmt: skip
     if "quality" in args.sections:
-        quality(layer, model, args)
+        quality(layer, twist, args)
     if "small" in args.sections:
-        gen = keyed_generator("correctives-small", args.seed)
-        coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-benchmark", args.seed))
-        for around_rest in (True, False):
-            change = []
-            for c in coeffs:
-                prepared = layer.prepare_identity(c[None])
-                pose = small_poses(layer, prepared, 16, gen, around_rest)
-                a = layer.pose(prepared, pose, correctives=False).vertices
-                b = layer.pose(prepared, pose).vertices
-                change.append((a - b).norm(dim=-1))
-            change = torch.stack(change) * 1e3
-            where = "rest pose" if around_rest else "T-pose"
-            print(f"small poses (every joint within 0.2 rad of the {where}): change mean {change.mean():.3f} mm "
-                  f"(per mesh max {change.mean(-1).max():.3f} mm), largest vertex {change.max():.2f} mm")  # fmt: skip
+        for tag, lay in (("plain rig", layer), ("twist rig", twist)):
+            small(lay, tag, args)
     if "speed" in args.sections:
         prepared = layer.prepare_identity(torch.zeros(1, layer.identity.num_params))
         poses, _ = stress_poses(keyed_generator("correctives-stress", args.seed))
@@ -148,6 +151,24 @@ def main() -> None:
         inversion(layer, args)
     if args.png:
         picture(layer, args.png)
+
+
+def small(layer: BodyLayer, tag: str, args: argparse.Namespace) -> None:
+    """The change the correctives make at small poses (16 per identity), around the rest pose and the T-pose."""
+    gen = keyed_generator("correctives-small", args.seed)
+    coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-benchmark", args.seed))
+    for around_rest in (True, False):
+        change = []
+        for c in coeffs:
+            prepared = layer.prepare_identity(c[None])
+            pose = small_poses(layer, prepared, 16, gen, around_rest)
+            a = layer.pose(prepared, pose, correctives=False).vertices
+            b = layer.pose(prepared, pose).vertices
+            change.append((a - b).norm(dim=-1))
+        change = torch.stack(change) * 1e3
+        where = "rest pose" if around_rest else "T-pose"
+        print(f"small poses, {tag} (every joint within 0.2 rad of the {where}): change mean {change.mean():.3f} mm "
+              f"(per mesh max {change.mean(-1).max():.3f} mm), largest vertex {change.max():.2f} mm")  # fmt: skip
 
 
 def inversion(layer: BodyLayer, args: argparse.Namespace) -> None:
@@ -177,20 +198,20 @@ def inversion(layer: BodyLayer, args: argparse.Namespace) -> None:
                       f"mean {e.mean():.2f} mm, P95 {e.quantile(0.95):.2f} mm, max {e.max():.1f} mm")  # fmt: skip
 
 
-def quality(layer: BodyLayer, model: Correctives, args: argparse.Namespace) -> None:
-    twist = BodyLayer.from_pca(procedural=True, correctives=model).to(args.device)
+def quality(layer: BodyLayer, twist: BodyLayer, args: argparse.Namespace) -> None:
+    """The stress-pose table: ``layer`` (plain rig) and ``twist`` (procedural twist), both with correctives."""
     measures = SurfaceMeasures.from_layer(layer)
     setup = TeacherSetup(layer)
     coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-benchmark", args.seed))
     poses, labels = stress_poses(keyed_generator("correctives-stress", args.seed))
     acc = {m: {"strain": [], "dihedral": [], "volume": [], "isect": [], "section": []} for m in METHODS}
-    fit = []
+    fit = {"MLP": [], "MLP + twist": []}
     t0 = time.perf_counter()
     for n, c in enumerate(coeffs):
         prepared = layer.prepare_identity(c[None])
-        _, teacher, _ = teacher_targets(layer, prepared, poses, setup)
+        _, teacher, _ = teacher_targets(layer, prepared, poses, setup, iterations=args.teacher_iterations)
         tw_pose = forearm_twist_pose(150.0)
-        _, tw_teacher, _ = teacher_targets(layer, prepared, tw_pose, setup)
+        _, tw_teacher, _ = teacher_targets(layer, prepared, tw_pose, setup, iterations=args.teacher_iterations)
         for m in METHODS:
             lay = twist if "twist" in m else layer
             corr = m.startswith("MLP")
@@ -210,8 +231,8 @@ def quality(layer: BodyLayer, model: Correctives, args: argparse.Namespace) -> N
             acc[m]["section"].append(forearm_min_section(
                 measures, prepared.rest_vertices[0].double().numpy(), prepared.rest_joints[0].double().numpy(), tv,
                 tw.joints[0].double().numpy()))  # fmt: skip
-            if m == "MLP":
-                fit.append((out.vertices.double() - teacher).norm(dim=-1))
+            if m.startswith("MLP"):
+                fit[m].append((out.vertices.double() - teacher).norm(dim=-1))
         done = time.perf_counter() - t0
         print(
             f"  identity {n + 1}/{len(coeffs)} ({done:.0f} s, ETA {done / (n + 1) * (len(coeffs) - n - 1):.0f} s)",
@@ -240,9 +261,11 @@ def quality(layer: BodyLayer, model: Correctives, args: argparse.Namespace) -> N
         isect = np.concatenate(acc[m]["isect"]) if acc[m]["isect"] else np.zeros(1)
         print(f"  {m:12s} strain {1 - float(s.mean()) / lbs[0]:+.0%}, dihedral {1 - float(a.mean()) / lbs[2]:+.0%}, "
               f"intersections {1 - float(isect.mean()) / max(lbs[6], 1e-9):+.0%}")  # fmt: skip
-    err = torch.stack(fit) * 1e3  # (identities, poses, V)
-    print(f"\nMLP vs teacher on the stress poses: mean {err.mean():.2f} mm, per-mesh max mean "
-          f"{err.amax(-1).mean():.1f} mm, max {err.max():.1f} mm")  # fmt: skip
+    print(f"\nteacher: {args.teacher_iterations} ARAP iterations")
+    for m, errs in fit.items():
+        err = torch.stack(errs) * 1e3  # (identities, poses, V)
+        print(f"{m} vs teacher on the stress poses: mean {err.mean():.2f} mm, per-mesh max mean "
+              f"{err.amax(-1).mean():.1f} mm, max {err.max():.1f} mm")  # fmt: skip
 
 
 if __name__ == "__main__":

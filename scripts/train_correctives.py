@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -320,7 +321,7 @@ def main() -> None:
     if args.stage == "generate":
         generate(args)
     else:
-        train(args, " ".join(["python", *sys.argv]))
+        train(args, shlex.join(["python", *sys.argv]))
 
 
 if __name__ == "__main__":

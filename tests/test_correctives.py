@@ -15,7 +15,7 @@ from unibody.correctives.metrics import SurfaceMeasures
 from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES, stress_poses
 from unibody.correctives.teacher import Arap
-from unibody.correctives.training import TeacherSetup, teacher_targets
+from unibody.correctives.training import TeacherSetup, blended_rotations, teacher_targets, twist_targets
 from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.rig import JOINT_NAMES
 
@@ -183,11 +183,83 @@ def test_state_round_trip(chain, tmp_path):
     assert torch.equal(back.union_displacements(rel, size), model.union_displacements(rel, size))
 
 
-def test_shipped_weights_carry_their_recipe():
-    state = torch.load(default_weights_path(), weights_only=True)
+@pytest.mark.parametrize("procedural", [False, True], ids=["plain", "twist"])
+def test_shipped_weights_carry_their_recipe(procedural):
+    path = default_weights_path(procedural)
+    assert path.name == ("correctives_twist.pt" if procedural else "correctives.pt")
+    state = torch.load(path, weights_only=True)
     meta = state["meta"]
     assert "scripts/train_correctives.py" in meta["command"] and "seed" in meta and "identities" in meta["data"]
-    assert default_weights_path().stat().st_size < 5e6
+    assert meta.get("target", "plain") == ("twist" if procedural else "plain")
+    assert path.stat().st_size < 5e6
+
+
+def test_procedural_layer_loads_the_twist_weights():
+    """correctives=True picks the weights of the layer's rig; a given Correctives is used as given."""
+    plain = BodyLayer.from_pca(correctives=True).correctives
+    twist = BodyLayer.from_pca(procedural=True, correctives=True).correctives
+    assert plain.meta.get("target", "plain") == "plain" and twist.meta["target"] == "twist"
+    assert torch.equal(twist.decode, Correctives.load(procedural=True).decode)
+    assert not torch.equal(twist.decode, plain.decode)
+    assert BodyLayer.from_pca(procedural=True, correctives=plain).correctives is plain
+
+
+@pytest.fixture(scope="module")
+def setup(pca):
+    return TeacherSetup(pca[0])
+
+
+def test_blended_rotations_of_the_plain_rig(pca, setup):
+    """The blended rotations read off the posed mesh equal sum_k w_vk R_k of the skinning transforms."""
+    layer, prepared = pca
+    pose, _ = stress_poses(torch.Generator().manual_seed(0), seeded=0)
+    pose = pose[:2].double()
+    lay = BodyLayer.from_pca().double()
+    p = PreparedIdentity(*(t.double() for t in vars_(prepared)))
+    posed, blended = blended_rotations(lay, p, pose, setup.union)
+    _, _, mats = lay.skin_transforms(p, lay.local_rotations(pose), pose.new_zeros(2, 3))
+    w = torch.from_numpy(setup.weights[setup.union.numpy()])
+    ref = torch.einsum("uj,bjrc->burc", w, mats[..., :3])
+    assert (blended - ref).abs().max() < 1e-9
+    assert (posed - lay.pose(p, pose).vertices).abs().max() == 0
+
+
+def test_twist_targets_map_the_twist_rig_onto_the_teacher(pca, setup):
+    """LBS_twist(v + d_twist) == teacher on the union (float64); the plain rig's d would not do it."""
+    layer, prepared = pca
+    poses, labels = stress_poses(torch.Generator().manual_seed(0), seeded=0)
+    pose = poses[[labels.index("forearm twist 150 (left)"), labels.index("elbow 150 (left)")]]
+    _, teacher, d = teacher_targets(layer, prepared, pose, setup)
+    d_twist = twist_targets(prepared, pose, teacher, setup)
+    assert d_twist.dtype == torch.float64 and d_twist.shape == d.shape
+    assert d_twist.norm(dim=-1).max() < 0.15  # not clamped: the identity below is exact
+    twist, u = setup.twist64(), setup.union
+    p = PreparedIdentity(*(t.double() for t in vars_(prepared)))
+
+    def posed(disp):
+        full = torch.zeros(2, layer.num_vertices, 3, dtype=torch.float64).index_copy(1, u, disp)
+        shifted = PreparedIdentity(p.rest_vertices + full, *(t.expand(2, *t.shape[1:]) for t in vars_(p)[1:]))
+        return twist.pose(shifted, pose.double()).vertices[:, u]
+
+    assert (posed(d_twist) - teacher[:, u]).norm(dim=-1).max() < 1e-6
+    assert (posed(d) - teacher[:, u]).norm(dim=-1).max() > 5e-3  # the twist corrected twice
+
+
+@pytest.mark.parametrize("procedural", [False, True], ids=["plain", "twist"])
+def test_shipped_weights_zero_at_rest_and_differentiable(pca, procedural):
+    """Both shipped weights: no change at the identity's rest pose; gradients reach the pose (float64)."""
+    layer, prepared = pca
+    lay = BodyLayer.from_pca(procedural=procedural, correctives=True).double()
+    p = PreparedIdentity(*(t.double() for t in vars_(prepared)))
+    rot = p.rest_rotations[0]
+    rest_local = (rot[lay.parents[1:]].transpose(-1, -2) @ rot[1:])[None]
+    on = lay.pose(p, rest_local, absolute=True).vertices
+    # 1e-8 m, not 0: the rest rotations, fitted in float32, are orthonormal to ~1e-7 only
+    assert (on - lay.pose(p, rest_local, absolute=True, correctives=False).vertices).abs().max() < 1e-6
+    pose, _ = stress_poses(torch.Generator().manual_seed(0), seeded=0)
+    pose = pose[:1].double().requires_grad_(True)
+    assert (lay.pose(p, pose).vertices - lay.pose(p, pose, correctives=False).vertices).norm(dim=-1).max() > 1e-3
+    assert torch.autograd.gradcheck(lambda x: lay.pose(p, x).vertices, (pose,), fast_mode=True)
 
 
 def test_arap_keeps_rigid_motions():
@@ -215,10 +287,9 @@ def test_bending_angles_match_panoman(pca):
     assert (measures._bending(v) - dihedral_angles(v, topo)).abs().max() < 1e-9
 
 
-def test_teacher_beats_lbs_at_a_bent_elbow(pca):
+def test_teacher_beats_lbs_at_a_bent_elbow(pca, setup):
     """Edge strain of the elbow region at 150 deg of flexion: the teacher at most 70 % of LBS's."""
     layer, prepared = pca
-    setup = TeacherSetup(layer)
     measures = SurfaceMeasures.from_layer(layer)
     pose, _ = stress_poses(torch.Generator().manual_seed(0), seeded=0)
     pose = pose[:1]  # elbow 150 (left)
@@ -231,9 +302,10 @@ def test_teacher_beats_lbs_at_a_bent_elbow(pca):
     assert (teacher - lbs)[:, far].abs().max() == 0  # LBS kept where one bone dominates
 
 
-def test_shipped_weights_ignore_the_fingers():
+@pytest.mark.parametrize("procedural", [False, True], ids=["plain", "twist"])
+def test_shipped_weights_ignore_the_fingers(procedural):
     """Finger rotations (straight in every training pose) are held at their training value."""
-    model = Correctives.load()
+    model = Correctives.load(procedural=procedural)
     gen = torch.Generator().manual_seed(8)
     rel = axis_angle_to_matrix(0.5 * torch.randn(2, 77, 3, generator=gen))
     fingers = [i for i, n in enumerate(JOINT_NAMES[1:]) if "Hand" in n and not n.endswith("Hand")]

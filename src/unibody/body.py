@@ -194,9 +194,10 @@ class BodyLayer(nn.Module):
             :class:`~unibody.procedural.ProceduralDefinition`. The pose stays 77 joints and
             the outputs 78 public joints; the expanded skeleton is internal.
         correctives: pose correctives (paper 000 §3.5.2, :mod:`unibody.correctives`): True for
-            the weights shipped with unibody, or a loaded
-            :class:`~unibody.correctives.model.Correctives`; applied by :meth:`pose` unless it is
-            told ``correctives=False``.
+            the weights shipped with unibody (with ``procedural``, those trained for the twist rig,
+            ``correctives_twist.pt``; else ``correctives.pt``), or a loaded
+            :class:`~unibody.correctives.model.Correctives`, used as given; applied by
+            :meth:`pose` unless it is told ``correctives=False``.
 
     Raises:
         TypeError: ``identity`` is not an nn.Module implementing IdentityBackend (the message
@@ -250,8 +251,8 @@ class BodyLayer(nn.Module):
         if correctives is not False:
             from .correctives.model import Correctives
 
-            if correctives is True:
-                correctives = Correctives.load()
+            if correctives is True:  # the twist rig has its own weights: the twist is not corrected twice
+                correctives = Correctives.load(procedural=self.twist is not None)
             if not isinstance(correctives, Correctives):
                 raise TypeError(f"correctives: expected a bool or a Correctives, got {type(correctives).__name__}")
             self.correctives = correctives.bind(self.skinning)
