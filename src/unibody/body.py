@@ -255,7 +255,11 @@ class BodyLayer(nn.Module):
                 correctives = Correctives.load(procedural=self.twist is not None)
             if not isinstance(correctives, Correctives):
                 raise TypeError(f"correctives: expected a bool or a Correctives, got {type(correctives).__name__}")
-            self.correctives = correctives.bind(self.skinning)
+            self.correctives = correctives
+            # Where its displacements are skinned: the twist rig's weights when there is one.
+            skinning = self.skinning if self.twist is None else self.twist.skinning
+            for k, v in correctives.skin_binding(skinning).items():
+                self.register_buffer(f"_corr_{k}", v, persistent=False)
 
     @classmethod
     def from_anny(
@@ -594,11 +598,15 @@ class BodyLayer(nn.Module):
         mats = None
         if self.twist is not None:
             local = batch_major(_local_math(pose, kind, absolute, left, right))[0]
-            rest = p.rest_vertices
-            if corr is not None:
-                rel = corr.rest_relative(local, p.rest_rotations, self.parents)
-                rest = rest + corr(rel, corr.size_of(p.rest_joints))
-            g_rot, g_pos, vertices = self.twist(rest, p.rest_rotations, p.rest_joints, p.offsets, local, transl)
+            args = (p.rest_vertices, p.rest_rotations, p.rest_joints, p.offsets, local, transl)
+            if corr is None:
+                g_rot, g_pos, vertices = self.twist(*args)
+            else:  # LBS of the shared rest mesh, plus the skinned displacements (one rest mesh per pose is slow)
+                g_rot, g_pos, vertices, tmats = self.twist(*args, with_mats=True)
+                rel = corr.rest_relative(local, p.rest_rotations, self.parents)[:, corr.needed - 1]
+                vertices = corr.posed(
+                    vertices, rel, tmats.permute(1, 3, 2, 0), corr.size_of(p.rest_joints), self._corr_binding()
+                )
             world = homogeneous(g_rot, g_pos)
         else:
             dense = self._warp_pose(pose, kind, absolute, p, transl)
@@ -610,12 +618,15 @@ class BodyLayer(nn.Module):
             world, mats = dense
             vertices = self._skin(p, mats)
             if corr is not None:
-                vertices = corr.posed(
-                    vertices, world, mats, p.rest_rotations, self.parents, corr.size_of(p.rest_joints)
-                )
+                rel = corr.world_relative(world, p.rest_rotations, self.parents)
+                vertices = corr.posed(vertices, rel, mats, corr.size_of(p.rest_joints), self._corr_binding())
         if check and b:
             self._check_overflow(world, vertices, mats, p.rest_vertices)
         return BodyOutput(vertices, world[..., :3, 3], world, p.rest_vertices.expand(b, -1, -1))
+
+    def _corr_binding(self) -> dict[str, torch.Tensor]:
+        """The correctives' skinning binding (:meth:`~unibody.correctives.model.Correctives.skin_binding`), on the layer's device."""
+        return {k: getattr(self, f"_corr_{k}") for k in ("crow", "col", "val", "joints")}
 
     def _use_correctives(self, correctives: bool | None) -> Correctives | None:
         """The correctives model to apply, or None (``pose``'s switch against the layer's)."""

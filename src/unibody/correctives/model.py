@@ -210,23 +210,11 @@ class Correctives(nn.Module):
         d = self.union_displacements(rel, size)
         return d.new_zeros(d.shape[0], self.num_vertices, 3).index_copy(1, self.union, d)
 
-    def posed(
-        self,
-        vertices: torch.Tensor,
-        world: torch.Tensor,
-        mats: torch.Tensor,
-        rest_rotations: torch.Tensor,
-        parents: torch.Tensor,
-        size: torch.Tensor,
-    ) -> torch.Tensor:
-        """LBS vertices (B, V, 3) plus the skinned correctives of the pose that gave them.
+    def world_relative(self, world: torch.Tensor, rest_rotations: torch.Tensor, parents: torch.Tensor) -> torch.Tensor:
+        """(B, N, 3, 3) the :attr:`needed` joints' local rotations relative to the rest pose, from posed world transforms.
 
         Args:
-            vertices: (B, V, 3) LBS of the rest meshes, a view of vertex-major (V, B, 3) storage
-                (a fresh tensor: updated in place when no gradient is needed).
-            world: (B, J, 4, 4) posed world transforms; mats: (J, 4, 3, B) joint-major skinning
-                transforms (``geometry.kinematics``); rest_rotations: (Bi, J, 3, 3);
-            parents: (J,); size: (Bi,) identity sizes (:func:`size_of`).
+            world: (B, J, 4, 4) posed world transforms; rest_rotations: (Bi, J, 3, 3); parents: (J,).
         """
         n = self.needed
         wr = world[:, :, :3, :3]
@@ -234,23 +222,36 @@ class Correctives(nn.Module):
         local = (wp[..., :, :, None] * wk[..., :, None, :]).sum(-3)  # R_p^T R_k, (B, N, 3, 3)
         rr = rest_rotations[:, :, :3, :3]
         rest_local = (rr[:, parents[n], :, :, None] * rr[:, n, :, None, :]).sum(-3)
-        rel = (rest_local[..., :, :, None] * local[..., :, None, :]).sum(-3)
-        d = self.displacements_vm(self.features(rel), size / self.size_ref)
-        return self.apply(vertices, mats, d)
+        return (rest_local[..., :, :, None] * local[..., :, None, :]).sum(-3)
 
-    def bind(self, skinning) -> Correctives:  # noqa: ANN001 (a geometry.skinning.Skinning)
-        """Keep the skinning weights of the :attr:`union` rows, to skin displacements by :meth:`apply`.
+    def posed(
+        self, vertices: torch.Tensor, rel: torch.Tensor, mats: torch.Tensor, size: torch.Tensor, binding: dict
+    ) -> torch.Tensor:
+        """LBS vertices (B, V, 3) plus the skinned correctives of the pose that gave them.
 
-        Only the joints that skin those rows are kept (Jd of the 78), as a CSR (U, Jd) matrix.
+        Args:
+            vertices: (B, V, 3) LBS of the rest meshes, a view of vertex-major (V, B, 3) storage
+                (a fresh tensor: updated in place when no gradient is needed).
+            rel: (B, N, 3, 3) the :attr:`needed` joints' rest-relative local rotations
+                (:meth:`world_relative`, or :meth:`rest_relative` rows ``needed - 1``).
+            mats: (J, 4, 3, B) joint-major skinning transforms of the rig that skinned
+                ``vertices`` (``geometry.kinematics``); size: (Bi,) identity sizes (:func:`size_of`);
+            binding: :meth:`skin_binding` of that rig's skinning.
         """
-        dense = skinning.dense()[self.union]
+        d = self.displacements_vm(self.features(rel), size / self.size_ref)
+        return self.apply(vertices, mats, d, binding)
+
+    def skin_binding(self, skinning) -> dict[str, torch.Tensor]:  # noqa: ANN001 (a geometry.skinning.Skinning)
+        """The skinning weights of the :attr:`union` rows, to skin displacements by :meth:`apply`.
+
+        Only the joints that skin those rows are kept (Jd of the rig's), as a CSR (U, Jd) matrix:
+        ``{"crow", "col", "val", "joints"}``. The layer keeps it (one model may serve a plain and
+        a procedural-twist layer, whose skinning differs).
+        """
+        dense = skinning.dense()[self.union.to(skinning.weight.device)]
         joints = torch.nonzero(dense.abs().amax(0) > 0).flatten()
         w = dense[:, joints].to_sparse_csr()
-        self.register_buffer("_w_crow", w.crow_indices().int(), persistent=False)
-        self.register_buffer("_w_col", w.col_indices().int(), persistent=False)
-        self.register_buffer("_w_val", w.values(), persistent=False)
-        self.register_buffer("_w_joints", joints, persistent=False)
-        return self
+        return {"crow": w.crow_indices().int(), "col": w.col_indices().int(), "val": w.values(), "joints": joints}
 
     @staticmethod
     def rest_relative(local: torch.Tensor, rest_rotations: torch.Tensor, parents: torch.Tensor) -> torch.Tensor:
@@ -264,7 +265,7 @@ class Correctives(nn.Module):
         # A^T B as broadcast products: cheaper than a batched matmul of 3x3 matrices.
         return (rest_local[..., :, :, None] * local[:, 1:, :, None, :]).sum(-3)
 
-    def apply(self, vertices: torch.Tensor, mats: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    def apply(self, vertices: torch.Tensor, mats: torch.Tensor, d: torch.Tensor, binding: dict) -> torch.Tensor:
         """LBS of the rest mesh plus the skinned displacements: ``LBS(v + d) = LBS(v) + (sum_k w_k R_k) d``.
 
         Args:
@@ -272,13 +273,15 @@ class Correctives(nn.Module):
                 gradient is needed).
             mats: (J, 4, 3, B) joint-major skinning transforms (``geometry.kinematics``).
             d: (U, 3, B) vertex-major rest-space displacements on :attr:`union`.
+            binding: :meth:`skin_binding` of the skinning ``mats`` belong to.
         """
         u, b = len(self.union), mats.shape[3]
-        jd = len(self._w_joints)
+        joints = binding["joints"]
+        jd = len(joints)
         # Rotations as (Jd, [column, row, pose]), mats' own layout: the blended rotations then
         # come out as (U, column, row, B), and d (U, column, B) multiplies them along the poses.
-        rot = mats.index_select(0, self._w_joints)[:, :3].reshape(jd, 9 * b)
-        w = csr(self._w_crow, self._w_col, self._w_val.to(mats.dtype), (u, jd))
+        rot = mats.index_select(0, joints)[:, :3].reshape(jd, 9 * b)
+        w = csr(binding["crow"], binding["col"], binding["val"].to(mats.dtype), (u, jd))
         if torch.is_grad_enabled() and (rot.requires_grad or w.requires_grad):
             blend = w @ rot
         else:  # MKL's sparse product is fastest per column at 24 columns (geometry.skinning)

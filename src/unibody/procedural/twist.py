@@ -17,7 +17,7 @@ from torch import nn
 
 from ..geometry.kinematics import pose_transforms
 from ..geometry.rotations import axis_angle_to_matrix
-from ..geometry.skinning import lbs_sparse, register_skin_layout, registered_skin_layout, skin_layout
+from ..geometry.skinning import Skinning, lbs_sparse, register_skin_layout, registered_skin_layout, skin_layout
 from ..rig import Rig
 from .expand import expand_rig, segment_alignment, translation_matrix
 from .extract import twist_channel
@@ -87,6 +87,12 @@ class ProceduralTwist(nn.Module):
         return cls(canonical_definition(), rig or Rig.canonical())
 
     @property
+    def skinning(self) -> Skinning:
+        """The expanded rig's sparse skinning weights (public joints, then twist joints), read-only."""
+        lay = registered_skin_layout(self)
+        return Skinning(lay.vertex, lay.joint, self.skin_weight, lay.w_crow, lay.num_vertices, lay.num_joints)
+
+    @property
     def num_twist(self) -> int:
         return self.expanded.num_joints - self.num_public
 
@@ -118,16 +124,20 @@ class ProceduralTwist(nn.Module):
         offsets: torch.Tensor,
         local_rot: torch.Tensor,
         transl: torch.Tensor,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        *,
+        with_mats: bool = False,
+    ) -> tuple[torch.Tensor, ...]:
         """FK + LBS through the expanded rig (a :class:`~unibody.body.PreparedIdentity`'s fields).
 
         Args:
             rest_vertices: (Bi, V, 3); rest_rot: (Bi, J, 3, 3); rest_pos, offsets: (Bi, J, 3).
             local_rot: (B, J, 3, 3) absolute local rotations of the public joints (Root = I).
             transl: (B, 3) m, Hips world position.
+            with_mats: also return the expanded rig's skinning transforms.
 
         Returns:
-            ``(world_rot (B, J, 3, 3), world_pos (B, J, 3), vertices (B, V, 3))``, public joints.
+            ``(world_rot (B, J, 3, 3), world_pos (B, J, 3), vertices (B, V, 3))``, public joints;
+            with ``with_mats``, then the (B, J + K, 3, 4) skinning transforms of every joint.
         """
         start = self._start
         align = segment_alignment(rest_rot, rest_pos, start, self._end, self._axis)  # (Bi, K, 3, 3)
@@ -147,4 +157,6 @@ class ProceduralTwist(nn.Module):
         )
         vertices = lbs_sparse(rest_vertices, mats, self.skin_weight, registered_skin_layout(self))
         n = self.num_public
+        if with_mats:
+            return g_rot[:, :n], g_pos[:, :n], vertices, mats
         return g_rot[:, :n], g_pos[:, :n], vertices
