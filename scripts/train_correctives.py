@@ -36,6 +36,7 @@ from tqdm import tqdm
 from unibody import BodyLayer
 from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES
+from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.correctives.training import TeacherSetup, draw_identities, size_of, teacher_targets, twist_targets
 from unibody.motion import load_motion
 from unibody.rig import JOINT_NAMES
@@ -224,6 +225,17 @@ def train(args: argparse.Namespace, command: str) -> None:
     if not torch.equal(model.union, setup.union):
         raise SystemExit("internal: the model's vertex union differs from the teacher's")
     _freeze_fingers(model, rel)
+    if args.init:
+        init = Correctives.load(args.init)
+        with torch.no_grad():
+            for name, param in model.named_parameters():
+                param.copy_(getattr(init, name))
+        meta["init"] = f"{args.init} ({init.meta.get('command', '')})"
+    if args.small_weight:
+        meta["small_pose_loss"] = (
+            f"{args.small_weight} x mean squared displacement on {args.batch} random poses per step with "
+            "every joint turned U(0, 0.2) rad about a uniform axis from the rest pose"
+        )
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     ckpt = data / f"checkpoint_{args.target}.pt"
     step, elapsed, best = 0, 0.0, {"mm": float("inf"), "last": float("inf"), "state": None}
@@ -245,6 +257,10 @@ def train(args: argparse.Namespace, command: str) -> None:
         idx = torch.randint(n, (args.batch,), generator=gen)
         pred = model.union_displacements(rel[idx], size_ref * torch.ones(1))
         loss = (pred - target[idx]).square().sum(-1).mean()
+        if args.small_weight:  # small poses: no displacement (LBS is fine there)
+            axis = torch.nn.functional.normalize(torch.randn(args.batch, 77, 3, generator=gen), dim=-1)
+            small = axis_angle_to_matrix(axis * 0.2 * torch.rand(args.batch, 77, 1, generator=gen))
+            loss = loss + args.small_weight * model.union_displacements(small, size_ref * torch.ones(1)).square().sum(-1).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -313,6 +329,14 @@ def main() -> None:
     parser.add_argument("--weight-decay", type=float, default=0.01)
     parser.add_argument("--hidden", type=int, default=64)
     parser.add_argument("--validate-every", type=float, default=120.0, help="seconds between checkpoints")
+    parser.add_argument("--init", default=None, help="start from these weights (a fine-tune; same structure)")
+    parser.add_argument(
+        "--small-weight",
+        type=float,
+        default=0.0,
+        help="weight of a zero-displacement loss on random small poses (every joint within 0.2 rad of "
+        "the rest pose): where LBS was fine, keep it",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
