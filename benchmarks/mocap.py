@@ -443,9 +443,9 @@ def retry_section(root: Path, models: dict[str, Labeler]) -> None:
                 outs.append(torch.from_numpy(out.point_labels))
                 cells.append(fmt(labeling_scores(outs[-1][vis], tru[vis], null=null)))
             differ = int((outs[0] != outs[1])[vis].sum())
-            print(f"| {Path(rel).stem} | {name} | {seq.num_frames} | {counts.get('unsure', 0)} | {counts.get('redo', 0)} "
-                  f"| {cells[0]} | {cells[1]} | {differ} of {int(vis.sum())} | {times[0]:.1f} / {times[1]:.1f} |",
-                  flush=True)  # fmt: skip
+            unsure, redo = counts.get("unsure", 0), counts.get("redo", 0)
+            print(f"| {Path(rel).stem} | {name} | {seq.num_frames} | {unsure} | {redo} | {cells[0]} | {cells[1]} "
+                  f"| {differ} of {int(vis.sum())} | {times[0]:.1f} / {times[1]:.1f} |", flush=True)  # fmt: skip
 
 
 def _gemm_rate(rounds: int) -> str:

@@ -36,8 +36,8 @@ from tqdm import tqdm
 from unibody import BodyLayer
 from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES
-from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.correctives.training import TeacherSetup, draw_identities, size_of, teacher_targets, twist_targets
+from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.motion import load_motion
 from unibody.rig import JOINT_NAMES
 from unibody.synth.poses import keyed_generator, mirror_rotation, sample_poses
@@ -260,7 +260,8 @@ def train(args: argparse.Namespace, command: str) -> None:
         if args.small_weight:  # small poses: no displacement (LBS is fine there)
             axis = torch.nn.functional.normalize(torch.randn(args.batch, 77, 3, generator=gen), dim=-1)
             small = axis_angle_to_matrix(axis * 0.2 * torch.rand(args.batch, 77, 1, generator=gen))
-            loss = loss + args.small_weight * model.union_displacements(small, size_ref * torch.ones(1)).square().sum(-1).mean()
+            still = model.union_displacements(small, size_ref * torch.ones(1))
+            loss = loss + args.small_weight * still.square().sum(-1).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -4,7 +4,18 @@ Units are metres, Y is up and bodies face +Z. Poses are (B, 77, 3) axis-angle lo
 rotations of joints 1..77, T-pose-relative by default (paper 001).
 """
 
-from .body import BodyLayer, BodyOutput, PreparedIdentity
+import os as _os
+import sys as _sys
+
+# The ``unibody`` command on a machine other jobs share: with OpenMP's default waiting, a torch
+# thread spins at each barrier while the one the scheduler put aside waits for a core, and
+# ``unibody mocap label`` ran 5-10x slower on 2 cores with one busy (benchmarks/cli_contention.py);
+# idle, waiting passively made no measurable difference. Only for the command, only before torch
+# loads OpenMP, never over the user's own setting (an empty value gives libgomp's default).
+if _sys.argv and _os.path.basename(_sys.argv[0]) == "unibody" and "torch" not in _sys.modules:
+    _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from .body import BodyLayer, BodyOutput, PreparedIdentity  # noqa: E402
 from .fitting.inversion import PRESETS, InversionConfig, InversionResult, PoseInverter
 from .identity import AnnyIdentity, GarmentIdentity, MHRIdentity, PCAIdentity, SMPLIdentity
 from .rig import JOINT_NAMES, NUM_JOINTS, NUM_POSED, KinematicTree, Rig, joint_index

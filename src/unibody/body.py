@@ -625,7 +625,7 @@ class BodyLayer(nn.Module):
         return BodyOutput(vertices, world[..., :3, 3], world, p.rest_vertices.expand(b, -1, -1))
 
     def _corr_binding(self) -> dict[str, torch.Tensor]:
-        """The correctives' skinning binding (:meth:`~unibody.correctives.model.Correctives.skin_binding`), on the layer's device."""
+        """The correctives' skinning binding (``Correctives.skin_binding``), on the layer's device."""
         return {k: getattr(self, f"_corr_{k}") for k in ("crow", "col", "val", "joints")}
 
     def _use_correctives(self, correctives: bool | None) -> Correctives | None:

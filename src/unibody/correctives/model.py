@@ -211,7 +211,7 @@ class Correctives(nn.Module):
         return d.new_zeros(d.shape[0], self.num_vertices, 3).index_copy(1, self.union, d)
 
     def world_relative(self, world: torch.Tensor, rest_rotations: torch.Tensor, parents: torch.Tensor) -> torch.Tensor:
-        """(B, N, 3, 3) the :attr:`needed` joints' local rotations relative to the rest pose, from posed world transforms.
+        """(B, N, 3, 3) the :attr:`needed` joints' rest-relative local rotations, from posed world transforms.
 
         Args:
             world: (B, J, 4, 4) posed world transforms; rest_rotations: (Bi, J, 3, 3); parents: (J,).
