@@ -8,7 +8,8 @@ regions (mean, P95), limb-segment volume / rest, the smallest forearm cross-sect
 ``--intersect-identities`` identities), the MLP against the teacher (mm, both rigs), the change
 the MLP makes at small poses (every joint within 0.2 rad of the rest pose, and of the T-pose;
 both rigs), the
-cost of posing with correctives at batch 1 and 32 (float32, one thread, best of 5 x 20 calls),
+cost of posing with correctives at batch 1 and 32 on both rigs (float32, one thread, median of 15
+interleaved rounds of 10 calls),
 and what pose inversion (which models plain LBS) leaves on meshes made with correctives.
 
     OMP_NUM_THREADS=1 python benchmarks/correctives.py [--identities 10] [--png docs/correctives.png]
@@ -65,17 +66,20 @@ def small_poses(layer: BodyLayer, prepared, n: int, gen: torch.Generator, around
     return layer.to_relative(rest_local[None] @ r)
 
 
-def timing(layer: BodyLayer, prepared, pose: torch.Tensor, corr: bool) -> float:
-    """Best of 5 x 20 calls, ms."""
-    best = float("inf")
-    for _ in range(3):
-        layer.pose(prepared, pose, correctives=corr)
-    for _ in range(5):
-        t = time.perf_counter()
-        for _ in range(20):
+def timing(layer: BodyLayer, prepared, pose: torch.Tensor, rounds: int = 15) -> tuple[float, float]:
+    """ms per call without and with correctives: median of ``rounds`` rounds of 10 calls each,
+    the two interleaved round by round (the machine's load moves both alike)."""
+    times = {False: [], True: []}
+    for corr in times:
+        for _ in range(3):
             layer.pose(prepared, pose, correctives=corr)
-        best = min(best, (time.perf_counter() - t) / 20 * 1e3)
-    return best
+    for _ in range(rounds):
+        for corr, got in times.items():
+            t = time.perf_counter()
+            for _ in range(10):
+                layer.pose(prepared, pose, correctives=corr)
+            got.append((time.perf_counter() - t) / 10 * 1e3)
+    return float(np.median(times[False])), float(np.median(times[True]))
 
 
 def panel(verts, faces, centre, view, label, size=360) -> np.ndarray:
@@ -144,10 +148,11 @@ def main() -> None:
     if "speed" in args.sections:
         prepared = layer.prepare_identity(torch.zeros(1, layer.identity.num_params))
         poses, _ = stress_poses(keyed_generator("correctives-stress", args.seed))
-        for b in (1, 32):
-            off, on = timing(layer, prepared, poses[:b], False), timing(layer, prepared, poses[:b], True)
-            print(f"pose(), float32, batch {b:2d}, {torch.get_num_threads()} thread(s): without {off:6.2f} ms, "
-                  f"with correctives {on:6.2f} ms (+{on / off - 1:.0%})")  # fmt: skip
+        for tag, lay in (("plain rig", layer), ("twist rig", twist)):
+            for b in (1, 32):
+                off, on = timing(lay, prepared, poses[:b])
+                print(f"pose(), {tag}, float32, batch {b:2d}, {torch.get_num_threads()} thread(s): without "
+                      f"{off:6.2f} ms, with correctives {on:6.2f} ms (+{on / off - 1:.0%})")  # fmt: skip
     if "inversion" in args.sections:
         inversion(layer, args)
     if args.png:
