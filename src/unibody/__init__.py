@@ -8,10 +8,11 @@ import os as _os
 import sys as _sys
 
 # The ``unibody`` command on a machine other jobs share: with OpenMP's default waiting, a torch
-# thread spins at each barrier while the one the scheduler put aside waits for a core, and
-# ``unibody mocap label`` ran 5-10x slower on 2 cores with one busy (benchmarks/cli_contention.py);
-# idle, waiting passively made no measurable difference. Only for the command, only before torch
-# loads OpenMP, never over the user's own setting (an empty value gives libgomp's default).
+# thread spins at each barrier while the one the scheduler put aside waits for a core. On 2 cores
+# with one busy, ``unibody mocap label`` took 23-27 s spinning and 14-16 s waiting passively
+# (benchmarks/cli_contention.py; 4-9x in runs beside heavier jobs); idle, passive cost ~6 %.
+# Only for the command, only before torch loads OpenMP, never over the user's own setting (an
+# empty value gives libgomp's default).
 if _sys.argv and _os.path.basename(_sys.argv[0]) == "unibody" and "torch" not in _sys.modules:
     _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
