@@ -91,3 +91,29 @@ def test_one_model_serves_a_plain_and_a_twist_layer():
     assert (plain.pose(prepared, pose).vertices - twist.pose(prepared, pose).vertices).abs().max() > 1e-3
     x = pose[:1].clone().requires_grad_(True)  # gradients through the twist rig's skinned displacements
     assert torch.autograd.gradcheck(lambda q: twist.pose(prepared, q).vertices[:, ::997], (x,), fast_mode=True)
+
+
+def test_inversion_knows_the_correctives():
+    """A layer with correctives inverts meshes made with them (the fixed point), and rounds = 0 is plain LBS."""
+    from dataclasses import replace
+
+    import pytest
+
+    from unibody import PRESETS, BodyLayer, InversionConfig, PoseInverter
+    from unibody.correctives.stress import stress_poses
+
+    layer = BodyLayer.from_pca(correctives=True)
+    prepared = layer.prepare_identity(torch.zeros(1, layer.identity.num_params))
+    poses, _ = stress_poses(torch.Generator().manual_seed(0), seeded=0)
+    poses = poses[[0, 2, 4, 10]]  # elbow, knee, shoulder, squat
+    target = layer.pose(prepared, poses).vertices.contiguous()
+    err = {}
+    for rounds in (0, 2):
+        res = PoseInverter(layer, replace(PRESETS["refined"], corrective_rounds=rounds)).invert(target, prepared)
+        again = layer.pose(prepared, res.rotations, transl=res.transl).vertices
+        err[rounds] = float((again - target).norm(dim=-1).mean())
+        if rounds:  # the residuals re-pose as the layer does, with its correctives (rounds 0: plain LBS)
+            torch.testing.assert_close(res.vertices, again, atol=1e-5, rtol=0)
+    assert err[2] < 0.6 * err[0]
+    with pytest.raises(ValueError, match="corrective_rounds: expected >= 0"):
+        InversionConfig(corrective_rounds=-1)

@@ -89,6 +89,11 @@ class InversionConfig:
         residuals: whether the result carries the re-posed mesh and the per-vertex error
             (one more FK + LBS over the batch); False leaves them None, for callers that
             want the pose only (motion conversion at full speed).
+        corrective_rounds: with a layer that applies pose correctives
+            (:mod:`unibody.correctives`), the analytic solve is repeated this many times against
+            the meshes less the correctives' displacement at the pose found so far (a fixed
+            point: the meshes are LBS plus correctives of their own pose); 0 models plain LBS.
+            Layers without correctives ignore it.
     """
 
     method: Method = "analytic"
@@ -105,13 +110,14 @@ class InversionConfig:
     lr: float = 1e-3
     region_weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
     residuals: bool = True
+    corrective_rounds: int = 2
 
     def __post_init__(self) -> None:
         for name, alias in (("method", Method), ("orthogonalization", Orthogonalization), ("init", Init)):
             value, choices = getattr(self, name), get_args(alias)
             if value not in choices:
                 raise ValueError(f"{name}: expected one of {', '.join(choices)}, got {value!r}")
-        for name in ("body_passes", "full_passes", "ns_iters", "steps"):
+        for name in ("body_passes", "full_passes", "ns_iters", "steps", "corrective_rounds"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
         if len(self.region_weights) != len(REGIONS) or min(self.region_weights) < 0:
@@ -689,13 +695,27 @@ class PoseInverter(nn.Module):
         cfg = self.config
         local, transl = self._skeleton_init(target)
         iterations = 0
+        rounds = cfg.corrective_rounds if self.layer.correctives is not None else 0
+        offset = None
         if cfg.method == "analytic" or (cfg.method == "autograd" and cfg.init == "analytic"):
-            local, transl, iterations = self._analytic(prepared, target, local, transl)
-            if self._gn is not None:
-                local, transl = gauss_newton(
-                    self.layer, self._gn, prepared, target, local, transl, cfg.gauss_newton_steps
+            for r in range(rounds + 1):
+                if r:  # the meshes less the correctives of the pose found so far
+                    offset = self._corrective_offset(prepared, local, transl)
+                local, transl, n = self._analytic(
+                    prepared, target if offset is None else target - offset, local, transl
                 )
-                local = self._zero_unobservable(polar_svd(local))
+                iterations += n
+                if self._gn is not None:
+                    local, transl = gauss_newton(
+                        self.layer,
+                        self._gn,
+                        prepared,
+                        target if offset is None else target - offset,
+                        local,
+                        transl,
+                        cfg.gauss_newton_steps,
+                    )
+                    local = self._zero_unobservable(polar_svd(local))
         if cfg.method == "autograd":
             if cfg.init == "none":
                 local = self._zero_unobservable(local, keep=torch.zeros_like(self.observable))
@@ -705,8 +725,18 @@ class PoseInverter(nn.Module):
         pred = error = None
         if cfg.residuals:
             _, _, pred = self.layer.skin_local(prepared, local, transl)
+            if offset is not None:  # re-posed as the layer poses: with its correctives
+                pred = pred + self._corrective_offset(prepared, local, transl)
             error = _distances(pred, given)
         return InversionResult(matrix_to_axis_angle(rel), rel, transl, pred, error, iterations)
+
+    def _corrective_offset(self, prepared: PreparedIdentity, local: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
+        """(B, V, 3) what the layer's correctives add to LBS at absolute local rotations ``local`` (B, J, 3, 3)."""
+        with torch.no_grad():
+            args = (prepared, local[:, 1:].contiguous())
+            on = self.layer.pose(*args, transl=transl, absolute=True, check=False, correctives=True).vertices
+            off = self.layer.pose(*args, transl=transl, absolute=True, check=False, correctives=False).vertices
+            return on - off
 
 
 def _newton_schulz_scaled(h: torch.Tensor, iters: int, lower: float | None = None) -> torch.Tensor:
