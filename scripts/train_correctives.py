@@ -162,6 +162,7 @@ def _validate(model: Correctives, rel: torch.Tensor, size: torch.Tensor, d: torc
 def _recipe(chunks: list[dict], held: int, seed: int, target: str) -> str:
     """The data recipe of the chunks, for the weights' meta."""
     recipe = chunks[0].get("recipe", {"iterations": 6, "motions": "", "motion_files": 0, "motion_frames": 0})
+    seed = recipe.get("seed", seed)  # the data's own seed (generate's), not the training run's
     sources = [s for c in chunks for s in c.get("sources", ["draw_poses"] * len(c["rel"]))]
     used = [s for s in sources if s != "draw_poses"]
     motions = ""
@@ -230,9 +231,9 @@ def train(args: argparse.Namespace, command: str) -> None:
         with torch.no_grad():
             for name, param in model.named_parameters():
                 param.copy_(getattr(init, name))
-        meta["init"] = f"{args.init} ({init.meta.get('command', '')})"
+        model.meta["init"] = f"{args.init} ({init.meta.get('command', '')})"
     if args.small_weight:
-        meta["small_pose_loss"] = (
+        model.meta["small_pose_loss"] = (
             f"{args.small_weight} x mean squared displacement on {args.batch} random poses per step with "
             "every joint turned U(0, 0.2) rad about a uniform axis from the rest pose"
         )
