@@ -340,6 +340,10 @@ def main() -> None:
         "the rest pose): where LBS was fine, keep it",
     )
     args = parser.parse_args()
+    if args.small_weight < 0:
+        parser.error(f"--small-weight: expected >= 0, got {args.small_weight}")
+    if args.init and not Path(args.init).is_file():
+        parser.error(f"--init: {args.init} is not a file (expected weights written by the train stage)")
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     if args.out is None:
