@@ -98,11 +98,12 @@ def generate(args: argparse.Namespace) -> None:
     data = Path(args.data)
     data.mkdir(parents=True, exist_ok=True)
     layer = BodyLayer.from_pca()
-    setup = TeacherSetup(layer)
+    setup = TeacherSetup(layer, volume=args.volume, contact=args.contact)
     coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-identities", args.seed))
     motions = load_motions(Path(args.motions)) if args.motions else []
     k = round(args.poses * args.motion_share) if motions else 0
-    todo = [i for i in range(args.identities) if not (data / f"chunk_{i:05d}.pt").exists()]
+    part, parts = args.shard
+    todo = [i for i in range(part, args.identities, parts) if not (data / f"chunk_{i:05d}.pt").exists()]
     print(f"teacher region: {len(setup.union)} vertices; {len(todo)} of {args.identities} identities to do; "
           f"{k} of {args.poses} poses from {len(motions)} motions")  # fmt: skip
     for i in tqdm(todo, desc="teacher", unit="identity", smoothing=0.1):
@@ -123,6 +124,8 @@ def generate(args: argparse.Namespace) -> None:
             "recipe": {
                 "seed": args.seed,
                 "iterations": args.iterations,
+                "volume": args.volume,
+                "contact": args.contact,
                 "motions": str(args.motions or ""),
                 "motion_files": len(motions),
                 "motion_frames": sum(len(p) for _, p in motions),
@@ -173,15 +176,26 @@ def _recipe(chunks: list[dict], held: int, seed: int, target: str) -> str:
             "(uniform motion, uniform frame, fingers straight; "
             f"keyed_generator('correctives-motion-frames', {seed}, i))"
         )
+    volume = (
+        ", each limb segment (upper arms, forearms, thighs, shins) held at its rest volume (cone from its bone "
+        "midpoint; the constraint linearised in every global step)"
+        if recipe.get("volume")
+        else ""
+    )
+    if recipe.get("contact"):
+        volume += (
+            ", then self-contact resolved (free vertices inside another part pulled back along their normals, "
+            "3 rounds x 4 iterations; teacher.Contact)"
+        )
     rig = "the procedural-twist rig (LBS + twist joints)" if target == "twist" else "plain LBS"
     return (
         f"{len(chunks)} native-PCA identities (16 components N(0,1), stature U(1.0, 1.95) m, "
         f"keyed_generator('correctives-identities', {seed})) x {len(chunks[0]['rel'])} poses each, in all "
         f"{len(sources) - len(used)} from draw_poses (sample_poses with bend 0.3, chamber 0.1, fold 0.15 + "
         f"randomised stress families; keyed_generator('correctives-poses', {seed}, i)){motions}; teacher: "
-        f"spokes-and-rims ARAP, {recipe['iterations']} iterations from LBS + procedural twist, joint regions grown "
-        f"5 rings (wrists and ankles: the whole forearm or shin), LBS boundary; targets: rest-space displacements "
-        f"that {rig} maps onto the teacher; last {held} identities held out for validation"
+        f"spokes-and-rims ARAP, {recipe['iterations']} iterations from LBS + procedural twist{volume}, joint "
+        f"regions grown 5 rings (wrists and ankles: the whole forearm or shin), LBS boundary; targets: rest-space "
+        f"displacements that {rig} maps onto the teacher; last {held} identities held out for validation"
     )
 
 
@@ -310,6 +324,17 @@ def train(args: argparse.Namespace, command: str) -> None:
     print(f"wrote {args.out} ({Path(args.out).stat().st_size / 1e6:.2f} MB)")
 
 
+def _shard(text: str) -> tuple[int, int]:
+    """``K/N`` -> (K, N) with 0 <= K < N."""
+    try:
+        k, n = (int(t) for t in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected K/N (e.g. 0/2), got {text!r}") from None
+    if not 0 <= k < n:
+        raise argparse.ArgumentTypeError(f"expected 0 <= K < N, got {text!r}")
+    return k, n
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("stage", choices=("generate", "train"))
@@ -324,6 +349,25 @@ def main() -> None:
     parser.add_argument("--motions", default=None, help="directory of unibody.motion/1 files (generate)")
     parser.add_argument("--motion-share", type=float, default=0.5, help="share of each identity's poses from --motions")
     parser.add_argument("--iterations", type=int, default=6, help="ARAP iterations of the teacher (generate)")
+    parser.add_argument(
+        "--volume",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the teacher keeps each limb segment's rest volume (generate; --no-volume: ARAP alone)",
+    )
+    parser.add_argument(
+        "--contact",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the teacher pulls penetrating vertices out of the body (generate; --no-contact: no self-contact)",
+    )
+    parser.add_argument(
+        "--shard",
+        type=_shard,
+        default=(0, 1),
+        metavar="K/N",
+        help="generate only identities i with i %% N == K (run N processes side by side; default 0/1)",
+    )
     parser.add_argument("--generate-command", default="", help="the generate command(s) that made --data, for the meta")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--lr", type=float, default=3e-3)

@@ -11,7 +11,7 @@ import torch
 from conftest import chain_rig
 from unibody import BodyLayer
 from unibody.body import PreparedIdentity
-from unibody.correctives.metrics import SurfaceMeasures
+from unibody.correctives.metrics import SurfaceMeasures, cone_volume
 from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES, stress_poses
 from unibody.correctives.teacher import Arap
@@ -272,6 +272,64 @@ def test_arap_keeps_rigid_motions():
     moved = rest @ rot.T + np.array([0.1, 0.2, -0.3])
     out = Arap(rest, rig.faces.numpy(), free, iterations=3)(moved[None])[0]
     assert np.abs(out - moved).max() < 1e-9
+
+
+def test_arap_volume_constraint_reaches_its_target():
+    """With a volume constraint the relaxed mesh meets the requested cone volume (here 80 % of the
+    start's) to 1e-4, the fixed vertices stay put, and no constraint leaves the plain result."""
+    rig = chain_rig()
+    rest, faces = rig.bind_vertices.numpy().astype(np.float64), rig.faces.numpy().astype(np.int64)
+    free = np.zeros(len(rest), bool)
+    free[len(rest) // 3 : 2 * len(rest) // 3] = True
+    seg = faces[free[faces].any(1)]
+    apex = rest[free].mean(0)
+
+    def volume(x):
+        return float(cone_volume(torch.from_numpy(x[None]), torch.from_numpy(seg), torch.from_numpy(apex[None]))[0])
+
+    arap = Arap(rest, faces, free, iterations=6, volumes=(seg,))
+    target = 0.8 * volume(rest)
+    out = arap(rest[None], apex[None, None], np.array([target]))[0]
+    assert abs(volume(out) / target - 1) < 1e-4
+    assert np.abs(out[~free] - rest[~free]).max() == 0
+    assert np.abs(arap(rest[None])[0] - rest).max() < 1e-9  # no apex: ARAP alone (rest is its minimum)
+
+
+def test_teacher_keeps_segment_volumes(pca, setup):
+    """At a squat and a bent elbow every limb segment of the teacher keeps its rest volume (LBS: up to +31 %)."""
+    layer, prepared = pca
+    measures = SurfaceMeasures.from_layer(layer)
+    poses, labels = stress_poses(torch.Generator().manual_seed(0), seeded=0)
+    pose = poses[[labels.index("squat: hip 120 + knee 150 (left)"), labels.index("arm forward + elbow 150 (right)")]]
+    lbs, teacher, _ = teacher_targets(layer, prepared, pose, setup, iterations=4)
+    world = layer.pose(prepared, pose).transforms
+    args = (prepared.rest_vertices, prepared.rest_rotations, prepared.rest_joints)
+    assert (measures.segment_volumes(*args, lbs, world) - 1).abs().max() > 0.1
+    assert (measures.segment_volumes(*args, teacher, world) - 1).abs().max() < 2e-3
+
+
+def test_contact_finds_nothing_on_the_rest_mesh(pca, setup):
+    """The rest mesh does not touch itself: no vertex is found inside the body."""
+    _, prepared = pca
+    assert setup.contact.targets(prepared.rest_vertices[0].double().numpy(), np.flatnonzero(setup.free)) == {}
+
+
+def test_teacher_resolves_self_contact_at_a_deep_knee_bend(pca):
+    """Knee at 150 deg: with contact the teacher leaves under half of the intersecting triangle
+    pairs it leaves without (and LBS leaves more still); the pulled vertices are free ones only."""
+    layer, prepared = pca
+    measures = SurfaceMeasures.from_layer(layer)
+    poses, labels = stress_poses(torch.Generator().manual_seed(0), seeded=0)
+    pose = poses[[labels.index("knee 150 (left)")]]
+    counts = {}
+    for contact in (False, True):
+        setup = TeacherSetup(layer, contact=contact)
+        lbs, teacher, _ = teacher_targets(layer, prepared, pose, setup, iterations=6)
+        counts[contact] = int(measures.self_intersections(teacher)[0])
+        far = ~torch.from_numpy(setup.free)
+        assert (teacher - lbs)[:, far].abs().max() == 0
+    counts["LBS"] = int(measures.self_intersections(lbs)[0])
+    assert counts["LBS"] > counts[False] > 2 * counts[True], counts
 
 
 def test_bending_angles_match_panoman(pca):

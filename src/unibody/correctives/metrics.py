@@ -25,7 +25,7 @@ import torch
 from ..geometry.intersect import intersecting_pairs
 from .teacher import STRESSED_JOINTS, teacher_region
 
-__all__ = ["STRESSED_JOINTS", "SEGMENTS", "SurfaceMeasures", "cross_section_area", "limb_profile"]
+__all__ = ["STRESSED_JOINTS", "SEGMENTS", "SurfaceMeasures", "cone_volume", "cross_section_area", "limb_profile"]
 
 SEGMENTS: tuple[tuple[str, str], ...] = tuple(
     (s + a, s + b)
@@ -77,6 +77,12 @@ def limb_profile(verts: np.ndarray, faces: np.ndarray, a: np.ndarray, b: np.ndar
     """Cross-section areas (m^2) at bone parameters ``ts`` between joint positions a and b."""
     axis = (b - a) / np.linalg.norm(b - a)
     return np.array([cross_section_area(verts, faces, a + t * (b - a), axis) for t in ts])
+
+
+def cone_volume(x: torch.Tensor, faces: torch.Tensor, apex: torch.Tensor) -> torch.Tensor:
+    """(B,) signed volume of the cone from ``apex`` (B, 3) to ``faces`` (F, 3) of meshes x (B, V, 3)."""
+    a, b, c = (x[:, faces[:, i]] - apex[:, None] for i in range(3))
+    return (a * torch.linalg.cross(b, c, dim=-1)).sum((-1, -2)) / 6
 
 
 @dataclass(frozen=True)
@@ -170,20 +176,28 @@ class SurfaceMeasures:
             world: (B, J, 4, 4) posed world transforms (``BodyOutput.transforms``).
         """
         rest, posed = rest.detach().cpu().double(), posed.detach().cpu().double()
-        rr, rj, g = (t.detach().cpu().double() for t in (rest_rotations, rest_joints, world))
-        out = []
-        for f, (k, c) in zip(self.segment_faces, self.segment_joints, strict=True):
-            f = torch.from_numpy(f)
-            apex0 = 0.5 * (rj[:, k] + rj[:, c])  # (Bi, 3), carried rigidly by joint k
-            local = (rr[:, k].transpose(-1, -2) @ (apex0 - rj[:, k])[..., None]).squeeze(-1)
-            apex = (g[:, k, :3, :3] @ local[..., None]).squeeze(-1) + g[:, k, :3, 3]
-
-            def vol(x: torch.Tensor, c0: torch.Tensor, f: torch.Tensor = f) -> torch.Tensor:
-                a, b, c = (x[:, f[:, i]] - c0[:, None] for i in range(3))
-                return (a * torch.linalg.cross(b, c, dim=-1)).sum((-1, -2)) / 6
-
-            out.append(vol(posed, apex) / vol(rest, apex0))
+        apex0, apex = self.segment_apexes(rest_rotations, rest_joints, world)
+        out = [
+            cone_volume(posed, torch.from_numpy(f), apex[:, k]) / cone_volume(rest, torch.from_numpy(f), apex0[:, k])
+            for k, f in enumerate(self.segment_faces)
+        ]
         return torch.stack(out, -1)
+
+    def segment_apexes(
+        self, rest_rotations: torch.Tensor, rest_joints: torch.Tensor, world: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The segments' cone apexes, float64: ((Bi, S, 3) at rest, (B, S, 3) posed).
+
+        The apex is the bone midpoint at rest, carried rigidly by the segment's joint.
+        """
+        rr, rj, g = (t.detach().cpu().double() for t in (rest_rotations, rest_joints, world))
+        rest_apex, posed_apex = [], []
+        for k, c in self.segment_joints:
+            apex0 = 0.5 * (rj[:, k] + rj[:, c])  # (Bi, 3)
+            local = (rr[:, k].transpose(-1, -2) @ (apex0 - rj[:, k])[..., None]).squeeze(-1)
+            rest_apex.append(apex0)
+            posed_apex.append((g[:, k, :3, :3] @ local[..., None]).squeeze(-1) + g[:, k, :3, 3])
+        return torch.stack(rest_apex, 1), torch.stack(posed_apex, 1)
 
     def self_intersections(self, posed: torch.Tensor) -> np.ndarray:
         """(B,) number of intersecting triangle pairs among the trunk-and-limb faces."""

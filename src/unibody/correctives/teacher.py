@@ -1,12 +1,14 @@
 """The teacher of the pose correctives: an elastic (as-rigid-as-possible) relaxation of the LBS
-mesh around the joints.
+mesh around the joints, volume kept, self-contact resolved.
 
 Plain LBS shears and collapses the surface where the skinning weights blend two bones (the
-inside of a bent elbow or knee, a raised shoulder, a twisted forearm). The teacher keeps LBS
-where one bone dominates and relaxes the joint regions (:func:`teacher_region`) toward the rest
-shape's local geometry: the spokes-and-rims as-rigid-as-possible energy (:class:`Arap`) with the
-LBS result as start and as boundary. It is measured against LBS by :mod:`.metrics`
-(``benchmarks/correctives.py``).
+inside of a bent elbow or knee, a raised shoulder, a twisted forearm), and lets a bent limb sink
+into itself. The teacher keeps LBS where one bone dominates and relaxes the joint regions
+(:func:`teacher_region`) toward the rest shape's local geometry: the spokes-and-rims
+as-rigid-as-possible energy (:class:`Arap`) with the LBS result as start and as boundary, each
+limb segment held at its rest volume (a linearised constraint in every global step), then the
+free vertices found inside the body pulled back out (:class:`Contact`). It is measured against
+LBS by :mod:`.metrics` (``benchmarks/correctives.py``).
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["Arap", "teacher_region"]
+__all__ = ["Arap", "Contact", "teacher_region"]
 
 
 def _memberships(rest: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -56,9 +58,16 @@ class Arap:
         iterations: local/global rounds.
     """
 
-    def __init__(self, rest: np.ndarray, faces: np.ndarray, free: np.ndarray, *, iterations: int = 8) -> None:
+    def __init__(
+        self,
+        rest: np.ndarray,
+        faces: np.ndarray,
+        free: np.ndarray,
+        *,
+        iterations: int = 8,
+        volumes: tuple[np.ndarray, ...] = (),
+    ) -> None:
         import scipy.sparse as sp
-        from cholespy import CholeskySolverD, MatrixType
 
         v = len(rest)
         e, c, w = _memberships(rest, faces)
@@ -71,39 +80,199 @@ class Arap:
         lap = sp.coo_matrix((np.r_[-self.w, -self.w], (np.r_[i, j], np.r_[j, i])), shape=(v, v)).tocsr()
         lap = lap - sp.diags(np.asarray(lap.sum(1)).ravel())
         self.free, self.fixed = np.flatnonzero(free), np.flatnonzero(~free)
-        a = lap[self.free][:, self.free].tocsr()
+        self._a = a = lap[self.free][:, self.free].tocsr()
         self.l_fh = lap[self.free][:, self.fixed].tocsr()
-        self._solver = CholeskySolverD(
-            a.shape[0], a.indptr.astype(np.int32), a.indices.astype(np.int32), a.data, MatrixType.CSR
-        )
+        self._solver = _factor(a)
         self.e0 = rest[i] - rest[j]  # (M, 3)
         self.iterations, self.num_vertices = iterations, v
+        self.volumes = tuple(np.asarray(f, dtype=np.int64) for f in volumes)
+        self._slot = np.full(v, -1)
+        self._slot[self.free] = np.arange(len(self.free))
+        if self.volumes:  # all segments' faces at once; where each corner's gradient lands in (S nf)
+            self._vol_faces = torch.from_numpy(np.concatenate(self.volumes))
+            self._vol_seg = torch.from_numpy(np.repeat(np.arange(len(self.volumes)), [len(f) for f in self.volumes]))
+            slots = torch.from_numpy(self._slot)[self._vol_faces]
+            self._vol_scatter = [
+                (slots[:, i] >= 0, (self._vol_seg * len(self.free) + slots[:, i])[slots[:, i] >= 0]) for i in range(3)
+            ]
 
-    def __call__(self, posed: np.ndarray) -> np.ndarray:
-        """Relax (B, V, 3) posed meshes (float64 numpy); the fixed vertices are returned unchanged."""
+    def _volume_step(
+        self,
+        x: torch.Tensor,
+        y: np.ndarray,
+        apex: torch.Tensor,
+        target: torch.Tensor,
+        *,
+        solver,  # noqa: ANN001
+    ) -> np.ndarray:
+        """The global step's solution ``y`` (nf, 3B) moved to meet every volume constraint, linearised at x.
+
+        Volume ``V_s(x) = sum_f (a - c).((b - c) x (d - c)) / 6`` (c the apex) has gradient
+        ``g_s`` on the free vertices; the solution of the constrained quadratic is
+        ``y + A^-1 G mu`` with ``(G^T A^-1 G) mu = target - V(x) - G^T (y - x)`` (one small
+        S x S system per pose, 3 S extra right-hand sides of the factored Laplacian).
+        """
+        b, nf, s = x.shape[0], len(self.free), len(self.volumes)
+        f, seg = self._vol_faces, self._vol_seg
+        p = [x[:, f[:, i]] - apex[:, seg] for i in range(3)]  # (B, F, 3) each, every segment's faces
+        vol = x.new_zeros(b, s).index_add_(1, seg, (p[0] * torch.linalg.cross(p[1], p[2], dim=-1)).sum(-1) / 6)
+        g = x.new_zeros(b, s * nf, 3)
+        for i, (keep, at) in enumerate(self._vol_scatter):  # dV/dx of corner i: (next - c) x (last - c) / 6
+            g.index_add_(1, at, torch.linalg.cross(p[(i + 1) % 3][:, keep], p[(i + 2) % 3][:, keep], dim=-1) / 6)
+        g = g.view(b, s, nf, 3)
+        rhs = np.ascontiguousarray(g.permute(2, 0, 1, 3).reshape(nf, 3 * b * s).numpy())
+        z = np.zeros_like(rhs)
+        solver.solve(rhs, z)
+        z = torch.from_numpy(z).reshape(nf, b, s, 3).permute(1, 2, 0, 3)  # (B, S, nf, 3) = A^-1 g
+        yb = torch.from_numpy(y).reshape(nf, b, 3).permute(1, 0, 2)  # (B, nf, 3)
+        xf = x[:, self.free]
+        k_mat = torch.einsum("bsvc,btvc->bst", g, z)
+        r = target - vol - torch.einsum("bsvc,bvc->bs", g, yb - xf)
+        ridge = 1e-9 * k_mat.diagonal(dim1=-2, dim2=-1).abs().amax(-1, keepdim=True).clamp_min(1e-30)
+        mu = torch.linalg.solve(k_mat + torch.diag_embed(ridge.expand(-1, s)), r)
+        yb = yb + torch.einsum("bs,bsvc->bvc", mu, z)
+        return yb.permute(1, 0, 2).reshape(nf, 3 * b).numpy()
+
+    def __call__(
+        self,
+        posed: np.ndarray,
+        apex: np.ndarray | None = None,
+        target: np.ndarray | None = None,
+        contact: Contact | None = None,
+    ) -> np.ndarray:
+        """Relax (B, V, 3) posed meshes (float64 numpy); the fixed vertices are returned unchanged.
+
+        With ``volumes`` (the constructor's), ``apex`` (B, S, 3) and ``target`` (S,) or (B, S):
+        every global step also keeps each volume at its target (the cone volume from the apex
+        to the faces), linearised at the current mesh. With ``contact``, each mesh is then
+        relaxed again with its penetrating free vertices pulled out (:class:`Contact`).
+        """
         x = torch.from_numpy(np.array(posed, dtype=np.float64, copy=True))
+        vol = None
+        if self.volumes and apex is not None:
+            apex_t = torch.as_tensor(apex, dtype=torch.float64)
+            vol = (apex_t, torch.as_tensor(target, dtype=torch.float64).expand(x.shape[0], len(self.volumes)))
+        for _ in range(self.iterations):
+            self._round(x, self._solver, vol)
+        if contact is not None:
+            for b in range(x.shape[0]):
+                one = None if vol is None else (vol[0][b : b + 1], vol[1][b : b + 1])
+                self._resolve_contacts(x[b : b + 1], one, contact)
+        return x.numpy()
+
+    def _round(self, x: torch.Tensor, solver, vol, pull: tuple[np.ndarray, np.ndarray, float] | None = None) -> None:  # noqa: ANN001
+        """One local/global round on (B, V, 3) meshes x, in place; ``pull``: (slots, (n, 3) targets,
+        weight) of free vertices drawn to targets (B = 1; ``solver`` factors the pulled system)."""
         b, v = x.shape[:2]
         i, j = (torch.from_numpy(t) for t in self.edges.T)
         cell = torch.from_numpy(self.cell)
         w, e0 = torch.from_numpy(self.w), torch.from_numpy(self.e0)
         nf, nc = len(self.free), len(self.cells)
-        for _ in range(self.iterations):
-            e = x[:, i] - x[:, j]  # (B, M, 3)
-            cov = (w[:, None, None] * e0[:, :, None]) * e[:, :, None, :]
-            s = x.new_zeros(b, nc, 3, 3).index_add_(1, cell, cov)
-            u, _, vh = torch.linalg.svd(s)
-            d = torch.sign(torch.linalg.det(vh.transpose(-1, -2) @ u.transpose(-1, -2)))
-            vh = torch.cat([vh[..., :2, :], vh[..., 2:, :] * d[..., None, None]], -2)
-            rot = vh.transpose(-1, -2) @ u.transpose(-1, -2)  # R_c maps rest edges to posed ones
-            rhs_e = w[:, None] * (rot[:, cell] @ e0[..., None]).squeeze(-1)  # (B, M, 3)
-            rhs = x.new_zeros(b, v, 3).index_add_(1, i, rhs_e).index_add_(1, j, -rhs_e)
-            rhs_f = rhs[:, self.free].permute(1, 0, 2).reshape(nf, 3 * b).numpy()
-            fixed = x[:, self.fixed].permute(1, 0, 2).reshape(len(self.fixed), 3 * b).numpy()
-            rhs_f = np.ascontiguousarray(rhs_f - self.l_fh @ fixed)
-            out = np.zeros_like(rhs_f)
-            self._solver.solve(rhs_f, out)
-            x[:, self.free] = torch.from_numpy(out).reshape(nf, b, 3).permute(1, 0, 2)
-        return x.numpy()
+        e = x[:, i] - x[:, j]  # (B, M, 3)
+        cov = (w[:, None, None] * e0[:, :, None]) * e[:, :, None, :]
+        s = x.new_zeros(b, nc, 3, 3).index_add_(1, cell, cov)
+        u, _, vh = torch.linalg.svd(s)
+        d = torch.sign(torch.linalg.det(vh.transpose(-1, -2) @ u.transpose(-1, -2)))
+        vh = torch.cat([vh[..., :2, :], vh[..., 2:, :] * d[..., None, None]], -2)
+        rot = vh.transpose(-1, -2) @ u.transpose(-1, -2)  # R_c maps rest edges to posed ones
+        rhs_e = w[:, None] * (rot[:, cell] @ e0[..., None]).squeeze(-1)  # (B, M, 3)
+        rhs = x.new_zeros(b, v, 3).index_add_(1, i, rhs_e).index_add_(1, j, -rhs_e)
+        rhs_f = rhs[:, self.free].permute(1, 0, 2).reshape(nf, 3 * b).numpy()
+        fixed = x[:, self.fixed].permute(1, 0, 2).reshape(len(self.fixed), 3 * b).numpy()
+        rhs_f = np.ascontiguousarray(rhs_f - self.l_fh @ fixed)
+        if pull is not None:
+            rhs_f[pull[0]] += pull[2] * pull[1]
+        out = np.zeros_like(rhs_f)
+        solver.solve(rhs_f, out)
+        if vol is not None:
+            out = self._volume_step(x, out, *vol, solver=solver)
+        x[:, self.free] = torch.from_numpy(out).reshape(nf, b, 3).permute(1, 0, 2)
+
+    def _resolve_contacts(self, x: torch.Tensor, vol, contact: Contact) -> None:  # noqa: ANN001
+        """Relax one mesh (1, V, 3) again, in place, with its penetrating free vertices pulled out
+        (each round adds the newly found ones; every pull stays to the end)."""
+        import scipy.sparse as sp
+
+        pulls: dict[int, np.ndarray] = {}
+        weight = contact.weight * float(np.abs(self._a.diagonal()).mean())
+        for _ in range(contact.rounds):
+            found = contact.targets(x[0].numpy(), self.free)
+            if not found:
+                break
+            pulls.update(found)
+            slots = self._slot[np.fromiter(pulls, dtype=np.int64)]
+            targets = np.stack(list(pulls.values()))
+            solver = _factor((self._a + sp.diags(np.bincount(slots, minlength=len(self.free)) * weight)).tocsr())
+            for _ in range(contact.iterations):
+                self._round(x, solver, vol, (slots, targets, weight))
+
+
+def _factor(a):  # noqa: ANN001, ANN202 (a scipy CSR matrix -> a cholespy solver)
+    """A sparse Cholesky factorisation of a symmetric positive definite CSR matrix."""
+    from cholespy import CholeskySolverD, MatrixType
+
+    return CholeskySolverD(a.shape[0], a.indptr.astype(np.int32), a.indices.astype(np.int32), a.data, MatrixType.CSR)
+
+
+class Contact:
+    """Self-contact of the teacher: free vertices inside the body are pulled back out.
+
+    A vertex is inside the body when a point ``offset`` outside it along its normal has a
+    winding number >= 1/2 (libigl's fast winding number of the whole posed mesh): outside its
+    own surface, yet inside another part. Its depth is its distance to the closest surface of
+    the parts other than its own (``labels``: each vertex's dominant joint); its target lies
+    back along its own normal by half the depth when that surface can move too (both sides of
+    a contact meet in the middle), by all of it when it is held (a fixed vertex of the trunk,
+    say), plus ``margin``. The pull is soft: the elastic energy and the volumes still hold.
+
+    Args:
+        faces: (F, 3) int64; labels: (V,) int part of each vertex (its dominant joint);
+        rounds: detect-and-relax rounds; iterations: local/global rounds after each;
+        weight: the pull, in units of the mean Laplacian diagonal; offset, margin: m.
+    """
+
+    def __init__(
+        self,
+        faces: np.ndarray,
+        labels: np.ndarray,
+        *,
+        rounds: int = 3,
+        iterations: int = 4,
+        weight: float = 1.0,
+        offset: float = 1e-3,
+        margin: float = 2e-3,
+    ) -> None:
+        self.faces, self.labels = np.ascontiguousarray(faces, dtype=np.int64), labels
+        self.rounds, self.iterations, self.weight, self.offset, self.margin = rounds, iterations, weight, offset, margin
+        self._face_labels = labels[self.faces]
+
+    def targets(self, x: np.ndarray, free: np.ndarray) -> dict[int, np.ndarray]:
+        """{vertex id: (3,) target} of the free vertices of mesh x (V, 3) that are inside the body."""
+        import igl
+
+        f = self.faces
+        fn = np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]])
+        vn = np.zeros_like(x)
+        for k in range(3):
+            np.add.at(vn, f[:, k], fn)
+        vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
+        probe = x[free] + self.offset * vn[free]
+        inside = free[igl.fast_winding_number(x, f, probe) >= 0.5]
+        out: dict[int, np.ndarray] = {}
+        is_free = np.zeros(len(x), bool)
+        is_free[free] = True
+        for part in np.unique(self.labels[inside]):
+            ids = inside[self.labels[inside] == part]
+            other = f[(self._face_labels != part).all(1)]
+            _, fid, c = igl.point_mesh_squared_distance(x[ids], x, other)
+            held = ~is_free[other[fid]].any(1)
+            depth = np.linalg.norm(c - x[ids], axis=1, keepdims=True)
+            step = np.where(held[:, None], 1.0, 0.5)
+            # Back along its own normal (not toward the closest point, whose direction jumps from
+            # one vertex to the next and crumpled the contact: 2-3x the intersections).
+            t = x[ids] - vn[ids] * (step * depth + self.margin)
+            out.update(zip(ids.tolist(), t, strict=True))
+        return out
 
 
 STRESSED_JOINTS: tuple[str, ...] = tuple(

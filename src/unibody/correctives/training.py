@@ -17,8 +17,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .metrics import SurfaceMeasures, cone_volume
 from .model import size_of
-from .teacher import Arap, teacher_region
+from .teacher import Arap, Contact, teacher_region
 
 __all__ = [
     "MAX_TARGET_M",
@@ -59,9 +60,20 @@ class TeacherSetup:
     Attributes:
         masks: per stressed joint, (V,) bool (:func:`~.teacher.teacher_region`, ``rings`` rings).
         union: (U,) int64 sorted vertex ids of all of them: where correctives are non-zero.
+        measures: with ``volume``, the :class:`~.metrics.SurfaceMeasures` whose limb segments
+            (upper arms, forearms, thighs, shins) keep their rest volume in the teacher.
+        contact: with ``contact``, the teacher's :class:`~.teacher.Contact` (self-contact resolved).
     """
 
-    def __init__(self, layer, *, rings: int = 5, twist_start: bool = True) -> None:  # noqa: ANN001
+    def __init__(  # noqa: D107
+        self,
+        layer,
+        *,
+        rings: int = 5,
+        twist_start: bool = True,
+        volume: bool = True,
+        contact: bool = True,  # noqa: ANN001
+    ) -> None:
         self.faces = layer.faces.cpu().numpy().astype(np.int64)
         self.weights = layer.skinning.dense().detach().cpu().double().numpy()
         self.parents = layer.parents.cpu()
@@ -70,6 +82,10 @@ class TeacherSetup:
         )
         self.free = np.any(list(self.masks.values()), axis=0)
         self.union = torch.from_numpy(np.flatnonzero(self.free))
+        # The limb segments whose volume the teacher keeps (those the metrics measure), or None.
+        self.measures = SurfaceMeasures.from_layer(layer) if volume else None
+        # Self-contact: penetrating free vertices pulled out (parts: each vertex's dominant joint), or None.
+        self.contact = Contact(self.faces, self.weights.argmax(1)) if contact else None
         self.twist = None
         if twist_start:
             from ..body import BodyLayer
@@ -99,13 +115,23 @@ def teacher_targets(
     with torch.no_grad():
         out = layer.pose(prepared, pose)
         lbs = out.vertices.double()
-        arap = Arap(prepared.rest_vertices[0].double().numpy(), setup.faces, setup.free, iterations=iterations)
+        rest = prepared.rest_vertices[0].double().numpy()
+        volumes, apex, target = (), None, None
+        if setup.measures is not None:  # each limb segment keeps its rest volume (cone from its bone midpoint)
+            m = setup.measures
+            volumes = m.segment_faces
+            apex0, apex = m.segment_apexes(prepared.rest_rotations, prepared.rest_joints, out.transforms)
+            rest64 = prepared.rest_vertices.double().cpu()
+            target = torch.stack(
+                [cone_volume(rest64, torch.from_numpy(f), apex0[:, k])[0] for k, f in enumerate(volumes)]
+            )
+        arap = Arap(rest, setup.faces, setup.free, iterations=iterations, volumes=volumes)
         start = lbs
         if setup.twist is not None:  # start the free vertices from LBS + twist joints: no candy wrapper to undo
             start = lbs.clone()
             free = torch.from_numpy(setup.free)
             start[:, free] = setup.twist.pose(prepared, pose).vertices.double()[:, free]
-        teacher = torch.from_numpy(arap(start.numpy()))
+        teacher = torch.from_numpy(arap(start.numpy(), apex, target, setup.contact))
         local = layer.local_rotations(pose)
         _, _, mats = layer.skin_transforms(prepared, local, pose.new_zeros(len(pose), 3))  # (B, J, 3, 4)
         u = setup.union
