@@ -16,9 +16,9 @@ and what pose inversion leaves on meshes made with correctives, modelling plain 
     OMP_NUM_THREADS=1 python benchmarks/correctives.py [--identities 10] [--png docs/correctives.png]
 
 The "MLP + twist" row poses with ``BodyLayer.from_pca(procedural=True)`` and the twist-rig
-weights (``--weights-twist``, default the shipped ``correctives_twist.pt``); the teacher row
-relaxes with the ARAP iterations the plain weights were trained with (their meta), unless
-``--teacher-iterations`` says otherwise.
+weights (``--weights-twist``, default the shipped ``correctives_twist.pt``); the teacher row is
+the teacher the plain weights were trained with (their meta: ARAP iterations, volume, contact),
+unless ``--teacher-iterations`` says otherwise.
 """
 
 from __future__ import annotations
@@ -213,7 +213,9 @@ def inversion(layer: BodyLayer, args: argparse.Namespace) -> None:
 def quality(layer: BodyLayer, twist: BodyLayer, args: argparse.Namespace) -> None:
     """The stress-pose table: ``layer`` (plain rig) and ``twist`` (procedural twist), both with correctives."""
     measures = SurfaceMeasures.from_layer(layer)
-    setup = TeacherSetup(layer)
+    meta = layer.correctives.meta
+    volume, contact = bool(meta.get("teacher_volume", False)), bool(meta.get("teacher_contact", False))
+    setup = TeacherSetup(layer, volume=volume, contact=contact)
     coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-benchmark", args.seed))
     poses, labels = stress_poses(keyed_generator("correctives-stress", args.seed))
     acc = {m: {"strain": [], "dihedral": [], "volume": [], "isect": [], "section": []} for m in METHODS}
@@ -273,7 +275,8 @@ def quality(layer: BodyLayer, twist: BodyLayer, args: argparse.Namespace) -> Non
         isect = np.concatenate(acc[m]["isect"]) if acc[m]["isect"] else np.zeros(1)
         print(f"  {m:12s} strain {1 - float(s.mean()) / lbs[0]:+.0%}, dihedral {1 - float(a.mean()) / lbs[2]:+.0%}, "
               f"intersections {1 - float(isect.mean()) / max(lbs[6], 1e-9):+.0%}")  # fmt: skip
-    print(f"\nteacher: {args.teacher_iterations} ARAP iterations")
+    print(f"\nteacher: {args.teacher_iterations} ARAP iterations, volume {'on' if volume else 'off'}, "
+          f"contact {'on' if contact else 'off'}")  # fmt: skip
     for m, errs in fit.items():
         err = torch.stack(errs) * 1e3  # (identities, poses, V)
         print(f"{m} vs teacher on the stress poses: mean {err.mean():.2f} mm, per-mesh max mean "

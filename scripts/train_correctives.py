@@ -153,10 +153,22 @@ def build_model(layer: BodyLayer, setup: TeacherSetup, size_ref: float, meta: di
     )
 
 
-def _validate(model: Correctives, rel: torch.Tensor, size: torch.Tensor, d: torch.Tensor, best: dict) -> dict:
-    """Mean rest-space error (mm) on the held-out identities; the best state so far."""
+def _validate(
+    model: Correctives,
+    rel: torch.Tensor,
+    size: torch.Tensor,
+    d: torch.Tensor,
+    best: dict,
+    edges: torch.Tensor,
+    ew: float,
+) -> dict:
+    """Held-out score (mm): mean rest-space error, plus ``sqrt(ew)`` x the mean error of the edge
+    differences when the edge loss is on (the training objective's terms); the best state so far."""
     with torch.no_grad():
-        mm = float((model.union_displacements(rel, size) - d).norm(dim=-1).mean()) * 1e3
+        err = model.union_displacements(rel, size) - d
+        mm = float(err.norm(dim=-1).mean()) * 1e3
+        if ew:
+            mm += ew**0.5 * float((err[:, edges[:, 0]] - err[:, edges[:, 1]]).norm(dim=-1).mean()) * 1e3
     if mm < best["mm"]:
         best = {"mm": mm, "state": {k: v.clone() for k, v in model.state_dict().items()}}
     return {**best, "last": mm}
@@ -199,6 +211,16 @@ def _recipe(chunks: list[dict], held: int, seed: int, target: str) -> str:
     )
 
 
+def _union_edges(setup: TeacherSetup) -> torch.Tensor:
+    """(E, 2) the mesh edges with both ends among the masked vertices, as slots of ``setup.union``."""
+    f = torch.from_numpy(setup.faces)
+    e = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).sort(1).values.unique(dim=0)
+    slot = torch.full((int(f.max()) + 1,), -1, dtype=torch.int64)
+    slot[setup.union] = torch.arange(len(setup.union))
+    e = slot[e]
+    return e[(e >= 0).all(1)]
+
+
 def _freeze_fingers(model: Correctives, rel: torch.Tensor) -> None:
     """Hold the finger inputs (straight in every training pose) at their training mean."""
     fingers = torch.tensor([j + 1 for j in FINGERS])
@@ -233,6 +255,8 @@ def train(args: argparse.Namespace, command: str) -> None:
         "target": args.target,
         "data": _recipe(chunks, held, args.seed, args.target),
         "teacher_iterations": int(chunks[0].get("recipe", {}).get("iterations", 6)),
+        "teacher_volume": bool(chunks[0].get("recipe", {}).get("volume", False)),
+        "teacher_contact": bool(chunks[0].get("recipe", {}).get("contact", False)),
         "generate": args.generate_command
         or f"python scripts/train_correctives.py generate --identities {len(chunks)} --seed {args.seed}",
     }
@@ -251,6 +275,12 @@ def train(args: argparse.Namespace, command: str) -> None:
             f"{args.small_weight} x mean squared displacement on {args.batch} random poses per step with "
             "every joint turned U(0, 0.2) rad about a uniform axis from the rest pose"
         )
+    if args.edge_weight:
+        model.meta["edge_loss"] = (
+            f"{args.edge_weight} x mean squared error of the displacement differences along the mesh edges "
+            "inside the masked vertices"
+        )
+    edges = _union_edges(setup)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     ckpt = data / f"checkpoint_{args.target}.pt"
     step, elapsed, best = 0, 0.0, {"mm": float("inf"), "last": float("inf"), "state": None}
@@ -261,6 +291,8 @@ def train(args: argparse.Namespace, command: str) -> None:
         step, elapsed, best = state["step"], state["elapsed"], state["best"]
         print(f"resumed at step {step}, {elapsed / 60:.1f} min")
     budget = args.minutes * 60
+    if best["state"] is None:  # the starting point (an --init) competes too
+        best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight)
     gen = torch.Generator().manual_seed(args.seed + step)
     n = len(rel)
     target = d / (size / size_ref)[:, None, None]
@@ -272,6 +304,12 @@ def train(args: argparse.Namespace, command: str) -> None:
         idx = torch.randint(n, (args.batch,), generator=gen)
         pred = model.union_displacements(rel[idx], size_ref * torch.ones(1))
         loss = (pred - target[idx]).square().sum(-1).mean()
+        if args.edge_weight:  # the edges' displacement differences too: what edge strain sees
+            e_pred, e_true = (
+                pred[:, edges[:, 0]] - pred[:, edges[:, 1]],
+                target[idx][:, edges[:, 0]] - target[idx][:, edges[:, 1]],
+            )
+            loss = loss + args.edge_weight * (e_pred - e_true).square().sum(-1).mean()
         if args.small_weight:  # small poses: no displacement (LBS is fine there)
             axis = torch.nn.functional.normalize(torch.randn(args.batch, 77, 3, generator=gen), dim=-1)
             small = axis_angle_to_matrix(axis * 0.2 * torch.rand(args.batch, 77, 1, generator=gen))
@@ -288,15 +326,15 @@ def train(args: argparse.Namespace, command: str) -> None:
         if (
             time.perf_counter() - last > args.validate_every
         ):  # checkpoint, and keep the best model on the held-out identities
-            best = _validate(model, v_rel, v_size, v_d, best)
+            best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight)
             torch.save(
                 {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed, "best": best},
                 ckpt,
             )
-            bar.write(f"step {step}: held-out mean {best['last']:.3f} mm (best {best['mm']:.3f} mm)")
+            bar.write(f"step {step}: held-out score {best['last']:.3f} mm (best {best['mm']:.3f} mm)")
             last = time.perf_counter()
     bar.close()
-    best = _validate(model, v_rel, v_size, v_d, best)
+    best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight)
     torch.save(
         {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed, "best": best}, ckpt
     )
@@ -375,6 +413,12 @@ def main() -> None:
     parser.add_argument("--weight-decay", type=float, default=0.01)
     parser.add_argument("--hidden", type=int, default=64)
     parser.add_argument("--validate-every", type=float, default=120.0, help="seconds between checkpoints")
+    parser.add_argument(
+        "--edge-weight",
+        type=float,
+        default=0.0,
+        help="weight of a loss on the displacement differences along mesh edges (what edge strain sees)",
+    )
     parser.add_argument("--init", default=None, help="start from these weights (a fine-tune; same structure)")
     parser.add_argument(
         "--small-weight",
@@ -386,6 +430,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.small_weight < 0:
         parser.error(f"--small-weight: expected >= 0, got {args.small_weight}")
+    if args.edge_weight < 0:
+        parser.error(f"--edge-weight: expected >= 0, got {args.edge_weight}")
     if args.init and not Path(args.init).is_file():
         parser.error(f"--init: {args.init} is not a file (expected weights written by the train stage)")
     torch.set_num_threads(args.threads)
