@@ -191,7 +191,20 @@ def test_shipped_weights_carry_their_recipe(procedural):
     meta = state["meta"]
     assert "scripts/train_correctives.py" in meta["command"] and "seed" in meta and "identities" in meta["data"]
     assert meta.get("target", "plain") == ("twist" if procedural else "plain")
+    assert meta["teacher_volume"] and meta["teacher_contact"]  # the benchmark's teacher row follows these
     assert path.stat().st_size < 5e6
+
+
+@pytest.mark.parametrize("shard", ["2/2", "a/b", "-1/2"])
+def test_train_script_rejects_a_bad_shard(shard):
+    """generate --shard K/N: one line naming the argument, exit status 2, no traceback."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
+    res = subprocess.run([sys.executable, str(script), "generate", "--shard", shard], capture_output=True, text=True)
+    assert res.returncode == 2 and "--shard" in res.stderr and "Traceback" not in res.stderr
 
 
 def test_procedural_layer_loads_the_twist_weights():
