@@ -250,12 +250,10 @@ class Contact:
         """{vertex id: (3,) target} of the free vertices of mesh x (V, 3) that are inside the body."""
         import igl
 
+        from ..geometry.mesh import vertex_normals
+
         f = self.faces
-        fn = np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]])
-        vn = np.zeros_like(x)
-        for k in range(3):
-            np.add.at(vn, f[:, k], fn)
-        vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
+        vn = vertex_normals(torch.from_numpy(x), torch.from_numpy(f)).numpy()
         probe = x[free] + self.offset * vn[free]
         inside = free[igl.fast_winding_number(x, f, probe) >= 0.5]
         out: dict[int, np.ndarray] = {}
