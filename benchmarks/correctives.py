@@ -31,7 +31,7 @@ import torch
 from PIL import Image, ImageDraw
 
 from unibody import BodyLayer
-from unibody.correctives.metrics import SurfaceMeasures, limb_profile
+from unibody.correctives.metrics import SEGMENTS, SurfaceMeasures, limb_profile
 from unibody.correctives.model import Correctives
 from unibody.correctives.stress import forearm_twist_pose, stress_poses
 from unibody.correctives.training import TeacherSetup, draw_identities, teacher_targets
@@ -275,6 +275,12 @@ def quality(layer: BodyLayer, twist: BodyLayer, args: argparse.Namespace) -> Non
         isect = np.concatenate(acc[m]["isect"]) if acc[m]["isect"] else np.zeros(1)
         print(f"  {m:12s} strain {1 - float(s.mean()) / lbs[0]:+.0%}, dihedral {1 - float(a.mean()) / lbs[2]:+.0%}, "
               f"intersections {1 - float(isect.mean()) / max(lbs[6], 1e-9):+.0%}")  # fmt: skip
+    print("\nsegment volumes under 90 % of rest (share of segment instances; the smallest: segment, pose, identity)")
+    for m in METHODS:
+        vol = torch.stack(acc[m]["volume"])  # (identities, poses, segments)
+        i, p, k = np.unravel_index(int(vol.argmin()), tuple(vol.shape))
+        print(f"  {m:12s} {float((vol < 0.9).float().mean()):6.2%}; {float(vol.min()):.1%} {SEGMENTS[k][0]}, "
+              f"{labels[p]}, identity {i}")  # fmt: skip
     print(f"\nteacher: {args.teacher_iterations} ARAP iterations, volume {'on' if volume else 'off'}, "
           f"contact {'on' if contact else 'off'}")  # fmt: skip
     for m, errs in fit.items():
