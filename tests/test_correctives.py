@@ -321,6 +321,18 @@ def test_teacher_keeps_segment_volumes(pca, setup):
     assert (measures.segment_volumes(*args, teacher, world) - 1).abs().max() < 2e-3
 
 
+def test_teacher_targets_ignore_the_layers_own_correctives(pca):
+    """The targets are relative to plain LBS: a layer built with correctives gives the same ones."""
+    layer, prepared = pca
+    setup = TeacherSetup(layer, contact=False)
+    poses, labels = stress_poses(torch.Generator().manual_seed(0), seeded=0)
+    pose = poses[[labels.index("elbow 150 (left)")]]
+    lbs, teacher, d = teacher_targets(layer, prepared, pose, setup, iterations=2)
+    with_corr = BodyLayer.from_pca(correctives=True)
+    lbs2, teacher2, d2 = teacher_targets(with_corr, prepared, pose, setup, iterations=2)
+    assert torch.equal(lbs, lbs2) and (teacher - teacher2).abs().max() < 1e-9 and (d - d2).abs().max() < 1e-9
+
+
 def test_contact_finds_nothing_on_the_rest_mesh(pca, setup):
     """The rest mesh does not touch itself: no vertex is found inside the body."""
     _, prepared = pca

@@ -67,12 +67,12 @@ class TeacherSetup:
 
     def __init__(  # noqa: D107
         self,
-        layer,
+        layer,  # noqa: ANN001 (a BodyLayer; no import cycle)
         *,
         rings: int = 5,
         twist_start: bool = True,
         volume: bool = True,
-        contact: bool = True,  # noqa: ANN001
+        contact: bool = True,
     ) -> None:
         self.faces = layer.faces.cpu().numpy().astype(np.int64)
         self.weights = layer.skinning.dense().detach().cpu().double().numpy()
@@ -113,7 +113,7 @@ def teacher_targets(
         the rest-space displacements on ``setup.union`` that LBS maps onto the teacher's.
     """
     with torch.no_grad():
-        out = layer.pose(prepared, pose)
+        out = layer.pose(prepared, pose, correctives=False)  # the targets are relative to plain LBS
         lbs = out.vertices.double()
         rest = prepared.rest_vertices[0].double().numpy()
         volumes, apex, target = (), None, None
