@@ -260,6 +260,12 @@ def train(args: argparse.Namespace, command: str) -> None:
         "generate": args.generate_command
         or f"python scripts/train_correctives.py generate --identities {len(chunks)} --seed {args.seed}",
     }
+    motions = chunks[0].get("recipe", {}).get("motions", "")
+    if motions:  # how the motion folder was made (the CMU training motions, never evaluation data)
+        meta["motions"] = (
+            f"{motions}: unibody convert ../shared/motions/cmu/bvh ../shared/motions/cmu/asfamc --to motion "
+            f"--out {motions} (the 183 CMU training motions; no evaluation data)"
+        )
     model = build_model(layer, setup, size_ref, meta, args.hidden)
     if not torch.equal(model.union, setup.union):
         raise SystemExit("internal: the model's vertex union differs from the teacher's")

@@ -192,6 +192,7 @@ def test_shipped_weights_carry_their_recipe(procedural):
     assert "scripts/train_correctives.py" in meta["command"] and "seed" in meta and "identities" in meta["data"]
     assert meta.get("target", "plain") == ("twist" if procedural else "plain")
     assert meta["teacher_volume"] and meta["teacher_contact"]  # the benchmark's teacher row follows these
+    assert "unibody convert" in meta["motions"] and "evaldata" not in meta["motions"]  # the motions' recipe
     assert path.stat().st_size < 5e6
 
 
