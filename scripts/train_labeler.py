@@ -54,12 +54,14 @@ evaluation subjects (``../shared/motions/cmu/manifest.json``'s ``excluded_subjec
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import shlex
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -141,14 +143,46 @@ def motion_files(paths: list[str], holdout: list[int]) -> tuple[list[Path], list
     return kept, [f for f in files if motion_subject(f) in holdout]
 
 
-def read_motions(paths: list[Path]) -> torch.Tensor | None:
-    """The pose frames (F, 77, 3) of unibody motion files, stacked (None without files)."""
+def read_motions(paths: list[Path], stride: int = 1) -> torch.Tensor | None:
+    """The pose frames (F, 77, 3) of unibody motion files, every ``stride``-th of each, stacked (None without files)."""
     if not paths:
         return None
     try:
-        return torch.cat([torch.as_tensor(load_motion(x).pose, dtype=torch.float32) for x in paths])
+        return torch.cat([torch.as_tensor(load_motion(x).pose[::stride], dtype=torch.float32) for x in paths])
     except (OSError, ValueError, KeyError) as err:
         raise SystemExit(f"--motions: {err}") from None
+
+
+class _StepBatches(torch.utils.data.Dataset):
+    """Training batch ``step`` of a run, drawn from its own generator seeded by (seed, step).
+
+    With ``--workers`` the batches come from worker processes in any number; seeding each batch
+    by its step keeps the data the same for any number of workers and on resume.
+    """
+
+    def __init__(self, data: SyntheticMocap, batch: int, seed: int) -> None:
+        self.data, self.batch, self.seed = data, batch, seed
+
+    def __len__(self) -> int:
+        return 2**62
+
+    def __getitem__(self, step: int) -> MocapBatch:
+        gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
+        return self.data.sample(self.batch, gen)
+
+
+def batches_from(
+    data: SyntheticMocap, args: argparse.Namespace, gen: torch.Generator, step: int
+) -> Iterator[MocapBatch]:
+    """The training batches from ``step`` on: one generator in this process, or ``--workers`` processes."""
+    if args.workers == 0:
+        while True:
+            yield data.sample(args.batch, gen)
+    loader = torch.utils.data.DataLoader(
+        _StepBatches(data, args.batch, args.seed), batch_size=None, sampler=itertools.count(step),
+        num_workers=args.workers, prefetch_factor=4, persistent_workers=False, collate_fn=lambda b: b,
+    )  # fmt: skip
+    yield from loader
 
 
 def accuracy(model: Labeler, batches: list[MocapBatch]) -> tuple[float, float]:
@@ -251,6 +285,10 @@ def main(argv: list[str] | None = None) -> None:
     )  # fmt: skip
     p.add_argument("--lab-variation", action="store_true", help="draw lab differences (synthetic.LAB_VARIATION)")
     p.add_argument("--motion-prob", type=float, default=0.5, help="fraction of samples posed from --motions")
+    p.add_argument(
+        "--motion-stride", type=int, default=1, metavar="K",
+        help="every K-th frame of each motion file (120 Hz CMU: 4 -> 30 Hz)",
+    )  # fmt: skip
     p.add_argument("--pool-seed", type=int, default=0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--val-frames", type=int, default=2048)
@@ -258,6 +296,14 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument(
         "--device", default="cpu",
         help="cpu, cuda or cuda:N: where the networks train (data is drawn on the CPU, the same on any device)",
+    )  # fmt: skip
+    p.add_argument(
+        "--workers", type=int, default=0,
+        help="processes drawing the training batches (each batch then seeded by its step; 0: one stream here)",
+    )  # fmt: skip
+    p.add_argument(
+        "--time-limit", type=float, metavar="SECONDS",
+        help="set --steps from the speed of the warm-up steps so that the run ends within SECONDS (at most --steps)",
     )  # fmt: skip
     p.add_argument("--checkpoint-every", type=float, default=120.0, help="seconds")
     p.add_argument("--log-every", type=float, default=20.0, help="seconds")
@@ -275,6 +321,7 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as err:
         raise SystemExit(str(err)) from None
     torch.set_num_threads(args.threads)
+    t_start = time.time()
     rev = git_rev()  # the code the run started from
     args.out.mkdir(parents=True, exist_ok=True)
     ckpt_path = args.out / "checkpoint.pt"
@@ -282,8 +329,14 @@ def main(argv: list[str] | None = None) -> None:
     layout = MarkerLayout.load(args.layout)
     if not 0.0 <= args.motion_prob <= 1.0:
         raise SystemExit(f"--motion-prob: expected a probability in [0, 1], got {args.motion_prob}")
+    for name, value, low in (("--motion-stride", args.motion_stride, 1), ("--workers", args.workers, 0)):
+        if value < low:
+            raise SystemExit(f"{name}: expected an integer >= {low}, got {value}")
+    if args.time_limit is not None and not (args.time_limit > 0 and args.warmup >= 20):
+        raise SystemExit(f"--time-limit: expected seconds > 0 and --warmup >= 20, got {args.time_limit}, {args.warmup}")
     train_files, held_files = motion_files(args.motions, args.motion_holdout)
-    motions, held = read_motions(train_files), read_motions(held_files)
+    motions = read_motions(train_files, args.motion_stride)
+    held = read_motions(held_files, args.motion_stride)
     train_data = synthetic(args, layout, args.pool_seed, args.identities, motions)
     val_data = synthetic(args, layout, args.pool_seed + 1000, 256, motions if held is None else held)  # disjoint bodies
     val_gen = torch.Generator().manual_seed(10_000 + args.seed)
@@ -348,13 +401,28 @@ def main(argv: list[str] | None = None) -> None:
 
     stop = {"now": False}
     previous = {sig: signal.signal(sig, lambda *_: stop.update(now=True)) for sig in (signal.SIGINT, signal.SIGTERM)}
-    t0 = t_log = t_ckpt = time.time()
+    t0 = t_log = t_ckpt = t_start
     step0, loss_avg = step, None
     end = args.steps if args.stop_at is None else min(args.steps, args.stop_at)
+    batches = batches_from(train_data, args, gen, step)
+    calibrate = (step0 + 10, step0 + args.warmup) if args.time_limit is not None and step0 < args.warmup else None
     while step < end and not stop["now"]:
+        if calibrate and step in calibrate:  # the warm-up's speed sets the length of the schedule
+            if step == calibrate[0]:
+                t_cal = time.time()
+            else:
+                rate = (calibrate[1] - calibrate[0]) / (time.time() - t_cal)
+                left = args.time_limit - (time.time() - t_start) - 30.0  # the final validation and saving
+                args.steps = min(args.steps, step + max(0, int(0.97 * rate * left)))
+                end = args.steps if args.stop_at is None else min(args.steps, args.stop_at)
+                print(f"--time-limit {args.time_limit:g}: {rate:.1f} steps/s, --steps {args.steps}", flush=True)
+        if args.time_limit is not None and time.time() - t_start > args.time_limit - 20.0:
+            print(f"--time-limit {args.time_limit:g}: stopped early at step {step} of {args.steps}", flush=True)
+            args.steps = end = step  # ends here: the weights are written as at the end of a schedule
+            break
         for group in opt.param_groups:
             group["lr"] = lr_at(step)
-        batch = train_data.sample(args.batch, gen).to(device)
+        batch = next(batches).to(device)
         loss = labeling_loss(model(batch.points, batch.mask, refine=0, retry=0.0), batch)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite loss at step {step}")
@@ -408,6 +476,10 @@ def main(argv: list[str] | None = None) -> None:
         "motion_subjects": sorted({motion_subject(x) for x in train_files} - {None}),
         "motion_holdout": [x.name for x in held_files],
         "motion_frames": 0 if motions is None else len(motions),
+        "motion_stride": args.motion_stride,
+        "workers": args.workers,
+        "batch": args.batch,
+        "architecture": {"width": args.width, "layers": args.layers, "heads": args.heads},
         "lab_variation": LAB_VARIATION if args.lab_variation else None,
         "motion_prob": args.motion_prob if args.motions else None,
         "orient_with": args.orient_with,
