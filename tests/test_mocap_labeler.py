@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import importlib.util
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -394,3 +395,42 @@ def test_shipped_weights_load_and_save_the_same_config_dict(tmp_path, name):
     assert model.orienter.config.to_dict() == stored["orienter"]
     model.save(tmp_path / "again.pt")
     assert torch.load(tmp_path / "again.pt", weights_only=True)["config"] == stored
+
+
+def test_training_script_workers_draw_each_batch_from_its_step(tmp_path):
+    """With ``--workers`` each batch is seeded by its step: one worker or two, straight or resumed,
+    train the same weights; another seed trains other weights (so the comparison can fail)."""
+    mod = _script()
+    mod.main(_args(tmp_path / "a", 3, "--workers", "1"))
+    mod.main(_args(tmp_path / "b", 3, "--workers", "2", "--stop-at", "7"))
+    mod.main(_args(tmp_path / "b", 3, "--workers", "2"))
+    mod.main(_args(tmp_path / "c", 4, "--workers", "2"))
+    a, b, c = (Labeler.load(tmp_path / x / "labeler.pt") for x in "abc")
+    for (k, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+        assert torch.equal(x, y), k
+    assert a.meta["workers"] == 1 and b.meta["workers"] == 2 and a.meta["batch"] == 16
+    assert not torch.equal(c.bin_score, a.bin_score)
+
+
+def test_training_script_motion_stride_and_time_limit(tmp_path):
+    """``--motion-stride K`` keeps every K-th frame of each file; ``--time-limit`` sets the steps from
+    the warm-up's speed and never runs past the limit; bad values are refused before any work."""
+    poses = sample_poses(30, torch.Generator().manual_seed(8), bend=1.0)
+    save_motion(tmp_path / "m.npz", Motion(poses.numpy(), np.zeros((30, 3), np.float32), 30.0))
+    mod = _script()
+    given = ["--motions", str(tmp_path / "m.npz"), "--motion-stride", "3", "--warmup", "20", "--time-limit", "1000"]
+    mod.main(_args(tmp_path / "a", 3, *given))
+    meta = Labeler.load(tmp_path / "a" / "labeler.pt").meta
+    assert meta["motion_frames"] == 10 and meta["motion_stride"] == 3
+    assert meta["steps"] == 12  # the limit leaves room for more: --steps caps the run
+    start = time.time()
+    mod.main(_args(tmp_path / "b", 3, "--steps", "100000", "--warmup", "20", "--time-limit", "32"))
+    assert 1 <= Labeler.load(tmp_path / "b" / "labeler.pt").meta["steps"] < 100000
+    assert time.time() - start < 32
+    for bad, match in (
+        (["--motion-stride", "0"], "--motion-stride: expected an integer >= 1, got 0"),
+        (["--workers", "-1"], "--workers: expected an integer >= 0, got -1"),
+        (["--time-limit", "10", "--warmup", "5"], "--time-limit: expected seconds > 0 and --warmup >= 20"),
+    ):
+        with pytest.raises(SystemExit, match=match):
+            mod.main(_args(tmp_path / "c", 3, *bad))
