@@ -384,7 +384,7 @@ def test_labeler_config_is_frozen_checked_and_saved_as_a_plain_dict(tmp_path):
     assert Labeler.load(tmp_path / "old.pt").config.retry == 0.0
 
 
-@pytest.mark.parametrize("name", ["cmu41", "pig39"])
+@pytest.mark.parametrize("name", ["cmu41", "cmu41_large", "pig39"])
 def test_shipped_weights_load_and_save_the_same_config_dict(tmp_path, name):
     from importlib import resources
 

@@ -25,21 +25,33 @@ from unibody.rig import joint_index
 
 
 def test_shipped_labelers_exist_with_their_recipe():
-    assert {"cmu41", "pig39"} <= set(available_labelers())
-    for name in ("cmu41", "pig39"):
+    assert {"cmu41", "cmu41_large", "pig39"} <= set(available_labelers())
+    for name in ("cmu41", "cmu41_large", "pig39"):
         model = load_labeler(name)
-        assert model.label_names == MarkerLayout.load(name).labels
+        assert model.label_names == MarkerLayout.load(model.meta["layout"]).labels
         assert "scripts/train_labeler.py" in model.meta["command"] and "seed" in model.meta
     with pytest.raises(ValueError, match="no shipped weights"):
         load_labeler("nope")
 
 
-@pytest.mark.parametrize("name", ["cmu41", "pig39"])
+def test_shipped_large_labeler_is_cmu41s_first_stage_and_a_paper_size_second():
+    """``cmu41_large``: the same frozen first stage as ``cmu41``, a second stage of about the paper's
+    1.44 M parameters, and the recipe of both stages in its metadata."""
+    small, large = load_labeler("cmu41"), load_labeler("cmu41_large")
+    a, b = small.orienter.state_dict(), large.orienter.state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    second = sum(p.numel() for n, p in large.named_parameters() if not n.startswith("orienter."))
+    assert 1.40e6 < second < 1.50e6 and large.meta["layout"] == "cmu41"
+    assert large.meta["recipe"][:11] == small.meta["recipe"][:11]  # the first stage's eleven runs
+    assert "--device cuda" in large.meta["recipe"][-1] and large.meta["batch"] == 1024
+
+
+@pytest.mark.parametrize("name", ["cmu41", "cmu41_large", "pig39"])
 def test_shipped_labeler_on_held_out_synthetic(name):
     """Bodies from a pool seed and frames from a stream never used in training."""
     torch.manual_seed(0)
     model = load_labeler(name).eval()
-    syn = SyntheticMocap(MarkerLayout.load(name), SyntheticConfig(identities=32, pool_seed=777))
+    syn = SyntheticMocap(MarkerLayout.load(model.meta["layout"]), SyntheticConfig(identities=32, pool_seed=777))
     batch = syn.sample(256, torch.Generator().manual_seed(4242))
     with torch.no_grad():
         pred, _ = predict(model(batch.points, batch.mask), batch.mask)
@@ -47,14 +59,15 @@ def test_shipped_labeler_on_held_out_synthetic(name):
     assert s["accuracy"] > 0.9, s
 
 
-@pytest.mark.parametrize("name", ["cmu41", "pig39"])
+@pytest.mark.parametrize("name", ["cmu41", "cmu41_large", "pig39"])
 def test_shipped_two_stage_labeler_labels_any_orientation(name):
     """Upright held-out frames, then the same frames turned by random rotations (lying, upside
     down): the two-stage labeler orients them back by their torso and labels them as well."""
     model = load_labeler(name).eval()
     assert model.orienter is not None and int(model.torso.sum()) == 9
     syn = SyntheticMocap(
-        MarkerLayout.load(name), SyntheticConfig(identities=32, pool_seed=777, pose=dict(POSE, tumble=0.0))
+        MarkerLayout.load(model.meta["layout"]),
+        SyntheticConfig(identities=32, pool_seed=777, pose=dict(POSE, tumble=0.0)),
     )
     b = syn.sample(256, torch.Generator().manual_seed(4243))
     rot = axis_angle_to_matrix(torch.randn(256, 3, generator=torch.Generator().manual_seed(1)) * 2.0)
@@ -216,6 +229,11 @@ def test_cli_label_and_solve_generated_c3d(tmp_path, capsys):
     body = read_markers(tmp_path / "body.npz").points[:, : len(layout)]
     ok_body = np.isfinite(body).all(-1) & (np.abs(body - lab).max(-1) < 1e-4)
     assert ok_body.mean() >= max(ok.mean(), 0.99), f"{ok_body.mean():.3f} against {ok.mean():.3f}"
+    # the paper-size labeler; --body finds the layout it was trained on (cmu41) in its metadata
+    large = tmp_path / "large.npz"
+    main(["mocap", "label", str(tmp_path / "raw.c3d"), "--out", str(large), "--model", "cmu41_large", "--body"])
+    found = read_markers(large).points[:, : len(layout)]
+    assert (np.isfinite(found).all(-1) & (np.abs(found - lab).max(-1) < 1e-4)).mean() > 0.95
     capsys.readouterr()
     for flag, message in [
         (["--body", "pig39"], "--body: the layout 'pig39' must name the model's 41 labels"),

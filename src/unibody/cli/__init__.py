@@ -62,7 +62,7 @@ def _parser() -> argparse.ArgumentParser:
     lab = msub.add_parser("label", parents=[writes], help="raw markers (.c3d/.npz) -> labelled markers (.c3d/.npz)")
     lab.add_argument("markers", type=Path)
     lab.add_argument("--out", type=Path, required=True, help="labelled markers to write (.c3d or .npz)")
-    lab.add_argument("--model", default="cmu41", help="shipped labeler (cmu41 | pig39) or a weights file")
+    lab.add_argument("--model", default="cmu41", help="shipped labeler (cmu41 | cmu41_large | pig39) or a weights file")
     lab.add_argument("--up", default="z", choices=("z", "y"), help="vertical axis of the file")
     lab.add_argument(
         "--per-frame", action="store_true", help="label each frame on its own (no tracklets settled over the take)"
@@ -80,7 +80,7 @@ def _parser() -> argparse.ArgumentParser:
     lab.add_argument(
         "--body", nargs="?", const="", metavar="LAYOUT",
         help="then check the labels against a body solved from them: each point takes the solved marker it sits "
-        "on, where that is clear (layout of the model's markers: the model's name by default, or a JSON file)",
+        "on, where that is clear (the model's layout: the one it was trained on by default, or a JSON file)",
     )  # fmt: skip
     sol = msub.add_parser("solve", parents=[writes], help="labelled markers (.c3d/.npz) -> unibody motion (.npz)")
     sol.add_argument("markers", type=Path)

@@ -37,9 +37,10 @@ def run_mocap_label(
     labeler = load_labeler(model).to(dev).set_autocast(torch.bfloat16 if bf16 else None)
     layout = None
     if body is not None:
-        if not body and model not in available_layouts():
-            raise UsageError(f"--body: {model!r} is not a shipped layout; name the model's layout (--body FILE.json)")
-        layout = MarkerLayout.load(body or model)
+        name = body or str(labeler.meta.get("layout") or model)  # by default the layout the weights were trained on
+        if not body and name not in available_layouts():
+            raise UsageError(f"--body: {name!r} is not a shipped layout; name the model's layout (--body FILE.json)")
+        layout = MarkerLayout.load(name)
     if retry is not None:
         try:
             labeler = labeler.with_config(retry=retry)
