@@ -30,7 +30,13 @@ and 0.55 (pig39)); one run alone goes about 1.7x faster with ``--threads 2``.
 
 ``--device cuda`` trains the networks on a GPU; the synthetic data is still drawn on the CPU by
 the same generator, so the batches are the same on any device (the weights are not
-bit-identical across devices). ``--layers`` above the ``--init`` labeler's grows it deeper: the
+bit-identical across devices). There one process cannot draw batches fast enough:
+``--workers N`` draws them in N processes, each batch from a generator seeded by its step (the
+same batches for any N, and on resume; a different stream from ``--workers 0``), and
+``--time-limit S`` sets ``--steps`` from the speed of the warm-up so that the run ends within S
+seconds (rerun with the ``--steps`` it printed to reproduce it). ``cmu41_large`` was trained
+that way on one H200 (its recipe: ``load_labeler('cmu41_large').meta['recipe']``).
+``--layers`` above the ``--init`` labeler's grows it deeper: the
 new blocks come last and start as the identity, so training starts from the labels it gave.
 ``--motions`` poses a fraction ``--motion-prob`` of the samples from the frames of unibody
 motion files (the paper trains on AMASS: its sequences, turned into canonical rotations by
