@@ -169,9 +169,6 @@ class _StepBatches(torch.utils.data.Dataset):
     def __init__(self, data: SyntheticMocap, batch: int, seed: int) -> None:
         self.data, self.batch, self.seed = data, batch, seed
 
-    def __len__(self) -> int:
-        return 2**62
-
     def __getitem__(self, step: int) -> MocapBatch:
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
         return self.data.sample(self.batch, gen)
@@ -186,7 +183,7 @@ def batches_from(
             yield data.sample(args.batch, gen)
     loader = torch.utils.data.DataLoader(
         _StepBatches(data, args.batch, args.seed), batch_size=None, sampler=itertools.count(step),
-        num_workers=args.workers, prefetch_factor=4, persistent_workers=False, collate_fn=lambda b: b,
+        num_workers=args.workers, prefetch_factor=4, collate_fn=lambda b: b,
     )  # fmt: skip
     yield from loader
 
