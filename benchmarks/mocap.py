@@ -2,6 +2,7 @@
 
     OMP_NUM_THREADS=2 python benchmarks/mocap.py [--evaldata ../shared/evaldata]
         [--sections label body speed solve copies retry] [--files KEY ...] [--retry R] [--bf16]
+        [--speed-also cmu41_large]
         [--session pycgm=build/s2_pycgm/labeler.pt tennis=build/s2_tennis/labeler.pt]
 
 Labels are hidden from the labeler and used only to score it. Files: CMU 85_02, 85_12, 135_02
@@ -461,36 +462,47 @@ def _gemm_rate(rounds: int) -> str:
     return f"addmm (11264, 96) @ (96, 288) at {max(rates):.0f} / {float(np.median(rates)):.0f} GFLOP/s, best / median"
 
 
-def speed_section(root: Path, models: dict[str, Labeler], seed: int, rounds: int = 5) -> None:
+def speed_section(root: Path, models: dict[str, Labeler], seed: int, rounds: int = 5, also=()) -> None:
     """Frames/s on 256 frames spread over each model's files, corrupted as per-frame C+G.
 
     Two-stage labelers run with their retry confidence and without retries (0). Each round
     labels all 256 frames; the best and the median round are printed (this VM's speed moves
-    by tens of percent between runs: the best round is the least disturbed one).
+    by tens of percent between runs: the best round is the least disturbed one). ``also``:
+    (name, labeler) pairs timed beside the shipped model of their layout, rounds interleaved,
+    with their speed as a ratio to it.
     """
     print(f"\n## Labeling speed (CPU, {torch.get_num_threads()} threads; forward + decoding, real frames)")
     print(f"Machine reference (this VM's speed moves between runs): {_gemm_rate(rounds)}.\n")
-    print(f"| model | parameters | retry | batch | frames/s, best / median of {rounds} rounds |\n|---|---|---|---|---|")
+    print(f"| model | parameters | retry | batch | frames/s, best / median of {rounds} rounds | ratio to the first |")
+    print("|---|---|---|---|---|---|")
     gen = torch.Generator().manual_seed(seed)
     for name, model in models.items():
-        n = sum(p.numel() for p in model.parameters())
+        group = [(name, model)] + [(n, m) for n, m in also if m.label_names == model.label_names]
         marked = np.concatenate([split(read(root / rel), model.label_names)[0] for rel in FILES[name]])
         pick = np.linspace(0, len(marked) - 1, 256).round().astype(int)
         b = corrupt_frames(torch.as_tensor(marked[pick], dtype=torch.float32), gen)
-        own = model.config.retry
-        for retry in dict.fromkeys((own, 0.0)):
+        for retry in dict.fromkeys((model.config.retry, 0.0)):
             for size in (1, 256):
                 batches = [(b.points[k : k + size], b.mask[k : k + size]) for k in range(0, 256, size)]
-                times = []
+                times = {n: [] for n, _ in group}
                 with torch.no_grad():
-                    predict(model(*batches[0], retry=retry), batches[0][1])  # warm-up
+                    for _, m in group:
+                        predict(m(*batches[0], retry=retry), batches[0][1])  # warm-up
                     for _ in range(rounds):
-                        t = time.perf_counter()
-                        for pts, mask in batches:
-                            predict(model(pts, mask, retry=retry), mask)
-                        times.append(time.perf_counter() - t)
-                best, median = 256 / min(times), 256 / float(np.median(times))
-                print(f"| {name} | {n:,} | {retry:g} | {size} | {best:,.0f} / {median:,.0f} |", flush=True)
+                        for n, m in group:
+                            t = time.perf_counter()
+                            for pts, mask in batches:
+                                predict(m(pts, mask, retry=retry), mask)
+                            times[n].append(time.perf_counter() - t)
+                first = float(np.median(times[name]))
+                for n, m in group:
+                    best, median = 256 / min(times[n]), 256 / float(np.median(times[n]))
+                    params = sum(p.numel() for p in m.parameters())
+                    ratio = first / float(np.median(times[n]))
+                    print(
+                        f"| {n} | {params:,} | {retry:g} | {size} | {best:,.0f} / {median:,.0f} | {ratio:.2f} |",
+                        flush=True,
+                    )
 
 
 def solve_section(root: Path, png: Path | None) -> None:
@@ -529,6 +541,13 @@ def main() -> None:
     p.add_argument("--pig39", default="pig39", help="labeler weights (name or path)")
     p.add_argument("--retry", type=float, help="two-stage labelers: override the weights' retry confidence (0: off)")
     p.add_argument("--bf16", action="store_true", help="labelers' networks in bfloat16 (Labeler.set_autocast)")
+    p.add_argument(
+        "--speed-also",
+        nargs="*",
+        default=[],
+        metavar="NAME",
+        help="labelers (names or paths) timed in the speed section beside the model of their layout",
+    )
     p.add_argument("--session", nargs="*", default=[], metavar="KEY=WEIGHTS",
                    help="the files whose name holds KEY also by this session-layout labeler")  # fmt: skip
     args = p.parse_args()
@@ -563,7 +582,8 @@ def main() -> None:
     if "retry" in args.sections:
         retry_section(args.evaldata, models)
     if "speed" in args.sections:
-        speed_section(args.evaldata, models, args.seed)
+        also = [(n, load_labeler(n).eval()) for n in args.speed_also]
+        speed_section(args.evaldata, models, args.seed, also=also)
     if "solve" in args.sections:
         solve_section(args.evaldata, args.png)
 
