@@ -582,7 +582,10 @@ def main() -> None:
     if "retry" in args.sections:
         retry_section(args.evaldata, models)
     if "speed" in args.sections:
-        also = [(n, load_labeler(n).eval()) for n in args.speed_also]
+        try:
+            also = [(n, load_labeler(n).eval()) for n in args.speed_also]
+        except (OSError, ValueError) as err:
+            raise SystemExit(f"--speed-also: {err}") from None
         speed_section(args.evaldata, models, args.seed, also=also)
     if "solve" in args.sections:
         solve_section(args.evaldata, args.png)
