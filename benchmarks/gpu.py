@@ -11,6 +11,8 @@ with ``torch.cuda.synchronize()`` around each call on CUDA):
   by seeded 0.3 rad poses: frames/s and the mean per-vertex error (mm) of the re-posed result.
 - **mocap**: the shipped two-stage ``cmu41`` labeler (orienter + retry) on a synthetic session
   (``SyntheticMocap``, held-out pool seed), ``label_frames`` at batch 256: frames/s and accuracy.
+- **correctives**: posing a prepared identity with the shipped pose correctives (issue 40) and
+  without, plain rig and twist rig, float32, the two calls interleaved: ms/call and the extra time.
 - **peer**: py-soma-x (``peer.peer_layer``: ``soma.SOMALayer(identity_model_type="anny",
   enable_procedural_transforms=False, mode="warp")`` on the asset folder built offline by
   ``_peer_assets.py``) on the same device in the same process, timed by ``peer.bench_speed`` (calls
@@ -22,6 +24,7 @@ skipped and says so (``benchmarks/gpu.sh`` also kills the run at 420 s).
 
     python benchmarks/gpu.py [--device cuda] [--batches 1 32 128 1024] [--budget 400]
     python benchmarks/gpu.py --device cpu --small      # the CPU smoke run (small batches, short timings)
+    python benchmarks/gpu.py --identity pca            # the PCA identity instead of Anny (no Anny model data needed)
 """
 
 from __future__ import annotations
@@ -78,11 +81,17 @@ def _poses(b: int, gen: torch.Generator, std: float = 0.3) -> torch.Tensor:
     return std * torch.randn(b, 77, 3, generator=gen)
 
 
+def _params(layer, b: int, gen: torch.Generator) -> torch.Tensor:
+    """(b, P) identity parameters of the layer's backend: Anny phenotypes in [0, 1], PCA coefficients ~ N(0, 0.5)."""
+    n = layer.identity.num_params
+    return torch.rand(b, n, generator=gen) if type(layer.identity).__name__ == "AnnyIdentity" else 0.5 * torch.randn(b, n, generator=gen)
+
+
 def section_pose(layer, device: str, batches: list[int], min_time: float) -> None:
     gen = torch.Generator().manual_seed(0)
     with torch.no_grad():
-        prepared = layer.prepare_identity(torch.full((1, 6), 0.5, device=device))
-    print("\n### Posing a prepared identity (float32, with transl)\n")
+        prepared = layer.prepare_identity(_params(layer, 1, gen).to(device))
+    print(f"\n### Posing a prepared identity ({type(layer.identity).__name__}, float32, with transl)\n")
     print("| batch | meshes/s | ms/call |\n|---|---|---|")
     for b in batches:
         pose, transl = _poses(b, gen).to(device), (0.1 * torch.randn(b, 3, generator=gen)).to(device)
@@ -93,10 +102,10 @@ def section_pose(layer, device: str, batches: list[int], min_time: float) -> Non
 
 def section_forward(layer, device: str, batches: list[int], min_time: float) -> None:
     gen = torch.Generator().manual_seed(1)
-    print("\n### Full forward, a distinct Anny identity per mesh (float32, with transl)\n")
+    print(f"\n### Full forward, a distinct identity per mesh ({type(layer.identity).__name__}, float32, with transl)\n")
     print("| batch | meshes/s | ms/call |\n|---|---|---|")
     for b in batches:
-        params = torch.rand(b, 6, generator=gen).to(device)
+        params = _params(layer, b, gen).to(device)
         pose, transl = _poses(b, gen).to(device), (0.1 * torch.randn(b, 3, generator=gen)).to(device)
         with torch.no_grad():
             t = median_time(lambda c=params, p=pose, tr=transl: layer(c, p, transl=tr), device, min_time)
@@ -108,9 +117,9 @@ def section_inversion(layer, device: str, batch: int, min_time: float) -> None:
 
     gen = torch.Generator().manual_seed(2)
     with torch.no_grad():
-        prepared = layer.prepare_identity(torch.rand(1, 6, generator=gen).to(device))
+        prepared = layer.prepare_identity(_params(layer, 1, gen).to(device))
         meshes = layer.pose(prepared, _poses(batch, gen).to(device), transl=torch.zeros(batch, 3, device=device))
-    print(f"\n### Inversion presets, {batch} meshes of one Anny identity (float32)\n")
+    print(f"\n### Inversion presets, {batch} meshes of one {type(layer.identity).__name__} identity (float32)\n")
     print("| preset | frames/s | ms/call | mean error (mm) |\n|---|---|---|---|")
     for name in ("fast", "analytic", "refined"):
         inv = PoseInverter(layer, PRESETS[name])
@@ -119,6 +128,36 @@ def section_inversion(layer, device: str, batch: int, min_time: float) -> None:
             t = median_time(lambda inv=inv: inv.invert(meshes.vertices, prepared), device, min_time, warmup=1)
         err = 1e3 * float(res.per_vertex_error.mean())
         print(f"| {name} | {batch / t:,.0f} | {1e3 * t:.2f} | {err:.2f} |", flush=True)
+
+
+def section_correctives(identity: str, device: str, batches: list[int], min_time: float) -> None:
+    """Posing with and without the shipped correctives, interleaved rounds: the extra time per call."""
+    from unibody import BodyLayer
+
+    build = BodyLayer.from_anny if identity == "anny" else BodyLayer.from_pca
+    print("\n### Pose correctives (issue 40): posing a prepared identity with and without (float32, with transl)\n")
+    print("| rig | batch | ms/call without | ms/call with | extra |\n|---|---|---|---|---|")
+    for procedural in (False, True):
+        layer = build(dtype=torch.float32, procedural=procedural, correctives=True).to(device)
+        gen = torch.Generator().manual_seed(3)
+        with torch.no_grad():
+            prepared = layer.prepare_identity(_params(layer, 1, gen).to(device))
+        for b in batches:
+            pose, transl = _poses(b, gen, 0.6).to(device), (0.1 * torch.randn(b, 3, generator=gen)).to(device)
+            times = {False: [], True: []}
+            with torch.no_grad():
+                for _ in range(3):  # rounds interleaved: a slow spell of the machine hits both
+                    for on in (False, True):
+                        times[on].append(
+                            median_time(
+                                lambda p=pose, tr=transl, on=on: layer.pose(prepared, p, transl=tr, correctives=on),
+                                device,
+                                min_time / 3,
+                            )
+                        )
+            off, on = sorted(times[False])[1], sorted(times[True])[1]
+            rig = "twist" if procedural else "plain"
+            print(f"| {rig} | {b} | {1e3 * off:.3f} | {1e3 * on:.3f} | {100 * (on / off - 1):+.0f} % |", flush=True)
 
 
 def section_mocap(device: str, frames: int, min_time: float) -> None:
@@ -193,6 +232,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--budget", type=float, default=400.0, help="seconds for the whole run")
     parser.add_argument("--small", action="store_true", help="smoke run: small batches, short timings")
     parser.add_argument("--no-peer", action="store_true")
+    parser.add_argument("--identity", choices=("anny", "pca"), default="anny", help="the identity backend timed")
     args = parser.parse_args(argv)
     if args.small:
         args.batches, args.forward_batches = [1, 8], [1, 4]
@@ -206,18 +246,22 @@ def main(argv: list[str] | None = None) -> None:
     from unibody import BodyLayer
 
     t = time.perf_counter()
-    layer = BodyLayer.from_anny(dtype=torch.float32).to(device)
-    print(f"\nBodyLayer.from_anny on {device}: {time.perf_counter() - t:.1f} s")
+    build = BodyLayer.from_anny if args.identity == "anny" else BodyLayer.from_pca
+    layer = build(dtype=torch.float32).to(device)
+    print(f"\nBodyLayer.from_{args.identity} on {device}: {time.perf_counter() - t:.1f} s")
     sections = [
         ("pose", 20, lambda: section_pose(layer, device, args.batches, args.min_time)),
         ("forward", 20, lambda: section_forward(layer, device, args.forward_batches, args.min_time)),
         ("inversion", 30, lambda: section_inversion(layer, device, args.inversion_batch, args.min_time)),
+        ("correctives", 40, lambda: section_correctives(args.identity, device, args.batches, args.min_time)),
         ("mocap", 30, lambda: section_mocap(device, args.mocap_frames, args.min_time)),
     ]
     for name, need, run in sections:
         if budget.allows(name, need):
             run()
     reason = "--no-peer" if args.no_peer else _peer_reason()
+    if reason is None and args.identity != "anny":
+        reason = "the peer is timed with the Anny identity only"
     if reason is not None:
         print(f"\n_peer: skipped ({reason})_")
     elif budget.allows("peer", 120):

@@ -65,8 +65,8 @@ def _on(module: torch.nn.Module, device: str) -> torch.nn.Module:
 
 
 @functools.cache
-def _pca_layer(dtype: torch.dtype, procedural: bool = False) -> BodyLayer:
-    return BodyLayer.from_pca(num_components=16, dtype=dtype, procedural=procedural)
+def _pca_layer(dtype: torch.dtype, procedural: bool = False, correctives: bool = False) -> BodyLayer:
+    return BodyLayer.from_pca(num_components=16, dtype=dtype, procedural=procedural, correctives=correctives)
 
 
 def _pose_inputs(b: int, k: int, dtype: torch.dtype, seed: int = 0, scale: float = 0.4):
@@ -113,6 +113,24 @@ def check_body_layer(device: str, dtype: torch.dtype, *, procedural: bool = Fals
         want = cpu.pose(cpu.prepare_identity(coeffs[:1]), mats, transl=transl)
         got = dev.pose(dev.prepare_identity(coeffs[:1].to(device)), mats.to(device), transl=transl.to(device))
     _close(got.vertices, want.vertices, tol["pos"], "vertices (shared identity, matrix pose)", device)
+
+
+def check_correctives(device: str, dtype: torch.dtype, *, procedural: bool = False, batch: int = 4) -> None:
+    """Posing with the shipped pose correctives (issue 40) and its gradients, on the plain or the twist rig."""
+    cpu = _pca_layer(dtype, procedural, correctives=True)
+    dev = _on(cpu, device)
+    tol = TOL[dtype]
+    coeffs, pose, transl = _pose_inputs(batch, 16, dtype, seed=7, scale=0.8)  # bent enough to move the mesh
+    want, want_g = _forward_and_grads(cpu, coeffs, pose, transl)
+    got, got_g = _forward_and_grads(dev, coeffs.to(device), pose.to(device), transl.to(device))
+    _close(got.vertices, want.vertices, tol["pos"], "vertices with correctives", device)
+    for name, a, b in zip(("d coeffs", "d pose", "d transl"), got_g, want_g, strict=True):
+        _close_grad(a, b, tol["grad"], f"{name} (correctives)", device)
+    with torch.no_grad():  # the check could fail: the correctives move the mesh, on both devices alike
+        prepared = dev.prepare_identity(coeffs.to(device))
+        plain = dev.pose(prepared, pose.to(device), transl=transl.to(device), correctives=False).vertices
+    moved = (got.vertices.detach() - plain).norm(dim=-1).amax()
+    assert float(moved) > 1e-3, f"correctives moved the mesh by {float(moved) * 1e3:.3f} mm at most (input is off)"
 
 
 def check_anny_layer(device: str, layer64: BodyLayer, dtype: torch.dtype, batch: int = 3) -> None:
@@ -397,6 +415,13 @@ def test_gpu_body_layer(dtype, procedural):
 
 @gpu
 @pytest.mark.parametrize("dtype", [F32, F64], ids=["f32", "f64"])
+@pytest.mark.parametrize("procedural", [False, True], ids=["plain", "twist"])
+def test_gpu_correctives(dtype, procedural):
+    check_correctives("cuda", dtype, procedural=procedural, batch=8)
+
+
+@gpu
+@pytest.mark.parametrize("dtype", [F32, F64], ids=["f32", "f64"])
 def test_gpu_anny_full_forward(anny_layer64, dtype):
     check_anny_layer("cuda", anny_layer64, dtype)
 
@@ -448,6 +473,10 @@ def test_gpu_retarget():
 
 def test_check_on_cpu_body_layer():
     check_body_layer("cpu", F64, batch=2)
+
+
+def test_check_on_cpu_correctives():
+    check_correctives("cpu", F64, procedural=True, batch=2)
 
 
 def test_check_on_cpu_gradcheck_small_rig():
