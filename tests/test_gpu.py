@@ -186,9 +186,14 @@ def check_inversion(device: str, dtype: torch.dtype, preset: str, batch: int = 4
     inv = PoseInverter(dev, config)
     got = inv.invert(meshes.to(device), dev.prepare_identity(coeffs[:1].to(device)))
     # The solvers iterate (Newton-Schulz, damped Gauss-Newton with accept/reject, Adam): compare
-    # the recovered pose loosely and the fit (the mean per-vertex error) tightly.
-    loose = {F32: (2e-3, 2e-4), F64: (1e-6, 1e-8)}[dtype]
+    # the recovered pose loosely and the fit (the mean per-vertex error) tightly. float32: the
+    # finger tips (few vertices, ill-conditioned) move with rounding: on the CPU alone, float32
+    # and float64 solves of this input differ by up to 1.2e-2 there (mean 1.4-3.6e-4 per entry;
+    # the first H200 run, 2026-11-27: cuda vs cpu 5.3e-3 to 8.0e-3).
+    loose = {F32: (2e-2, 2e-4), F64: (1e-6, 1e-8)}[dtype]
     _close(got.rotations, want.rotations, loose[0], f"{preset}: rotations", device)
+    mean = float((got.rotations.cpu() - want.rotations).abs().mean())
+    assert mean <= loose[0] / 20, f"{preset}: rotations: mean |{device} - cpu| = {mean:.3g} > {loose[0] / 20:g}"
     _close(got.transl, want.transl, loose[1] * 10, f"{preset}: transl", device)
     e_got, e_want = float(got.per_vertex_error.mean()), float(want.per_vertex_error.mean())
     assert abs(e_got - e_want) <= loose[1], f"{preset}: mean error {e_got * 1e3:.4f} mm vs {e_want * 1e3:.4f} mm"
@@ -292,9 +297,15 @@ def check_occupancy(device: str, resolve_steps: int = 5) -> None:
     points = torch.rand(2000, 3, generator=g) * torch.tensor([1.2, 2.0, 0.6]) - torch.tensor([0.6, 1.0, 0.3])
     out = layer(params, pose)
     out_d = layer_d(params.to(device), pose.to(device))
-    _close(occ_d.query(points.to(device), out_d), occ.query(points, out), 1e-4, "occupancy", device)
+    # Occupancy is steep at the surface: a point there moves with rounding. On the CPU alone,
+    # float32 and float64 differ by up to 2.9e-4 on these points (mean 1.7e-7); the first H200
+    # run (2026-11-27) found 2.5e-4 between cuda and cpu. Max 1e-3, mean 1e-5.
+    occupancy, occupancy_d = occ.query(points, out), occ_d.query(points.to(device), out_d)
     parts, parts_d = occ.query(points, out, parts=True), occ_d.query(points.to(device), out_d, parts=True)
-    _close(parts_d, parts, 1e-4, "per-part occupancy", device)
+    for what, a, b in (("occupancy", occupancy_d, occupancy), ("per-part occupancy", parts_d, parts)):
+        _close(a, b, 1e-3, what, device)
+        mean = float((a.cpu() - b).abs().mean())
+        assert mean <= 1e-5, f"{what}: mean |{device} - cpu| = {mean:.3g} > 1e-05"
     assert float(parts.amax()) > 0.9 and float(parts.amin()) == 0.0  # points inside and outside
 
     def terms(o, lay, dev):
