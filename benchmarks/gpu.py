@@ -84,7 +84,9 @@ def _poses(b: int, gen: torch.Generator, std: float = 0.3) -> torch.Tensor:
 def _params(layer, b: int, gen: torch.Generator) -> torch.Tensor:
     """(b, P) identity parameters of the layer's backend: Anny phenotypes in [0, 1], PCA coefficients ~ N(0, 0.5)."""
     n = layer.identity.num_params
-    return torch.rand(b, n, generator=gen) if type(layer.identity).__name__ == "AnnyIdentity" else 0.5 * torch.randn(b, n, generator=gen)
+    if type(layer.identity).__name__ == "AnnyIdentity":
+        return torch.rand(b, n, generator=gen)
+    return 0.5 * torch.randn(b, n, generator=gen)
 
 
 def section_pose(layer, device: str, batches: list[int], min_time: float) -> None:
@@ -150,7 +152,9 @@ def section_correctives(identity: str, device: str, batches: list[int], min_time
                     for on in (False, True):
                         times[on].append(
                             median_time(
-                                lambda p=pose, tr=transl, on=on: layer.pose(prepared, p, transl=tr, correctives=on),
+                                lambda p=pose, tr=transl, on=on, lay=layer, pr=prepared: lay.pose(
+                                    pr, p, transl=tr, correctives=on
+                                ),
                                 device,
                                 min_time / 3,
                             )

@@ -284,28 +284,40 @@ def _occupancy():
     return BodyOccupancy.pretrained()
 
 
-def check_occupancy(device: str, resolve_steps: int = 5) -> None:
+# The occupancy terms sample points at part surfaces, where occupancy is steep: rounding moves
+# them. Measured on the CPU alone (this input, float32 against float64): the queries differ by up
+# to 2.9e-4 (mean 1.7e-7), the self-intersection term by 1.2 %, its pose gradient by 22 % of its
+# largest entry (cosine 0.98, norm 0.92x), a 10-step resolve by 4.4 % in loss and 0.047 rad.
+# The first H200 run (2026-11-27) found cuda-cpu differences of that size in float32 (queries
+# 2.5e-4, the term 1.6 %). So the device is checked tightly in float64 and, in float32, within
+# that floor (gradient by direction and size; no resolve).
+OCC_TOL = {
+    F64: {"query": 1e-6, "query_mean": 1e-9, "si": 1e-5, "coll": 1e-6, "grad": 1e-4, "resolve": 1e-4},
+    F32: {"query": 1e-3, "query_mean": 1e-5, "si": 3e-2, "coll": 1e-3, "grad_cos": 0.95, "grad_norm": 0.15},
+}
+
+
+def check_occupancy(device: str, dtype: torch.dtype = F64, resolve_steps: int = 5) -> None:
     """Queries, per-part queries, collision and self-intersection terms (values and pose gradients), resolve."""
     from test_occupancy import _intersecting_body
     from unibody.occupancy import resolve_self_intersections
 
-    occ = _occupancy()
-    occ_d = _on(occ, device)
-    layer, params, pose = _intersecting_body()
-    layer_d = _on(layer, device)
+    tol = OCC_TOL[dtype]
+    occ, layer, params, pose = _occupancy(), *_intersecting_body()
+    occ, layer = copy.deepcopy(occ).to(dtype), copy.deepcopy(layer).to(dtype)
+    params, pose = params.to(dtype), pose.to(dtype)
+    occ_d, layer_d = _on(occ, device), _on(layer, device)
     g = torch.Generator().manual_seed(5)
     points = torch.rand(2000, 3, generator=g) * torch.tensor([1.2, 2.0, 0.6]) - torch.tensor([0.6, 1.0, 0.3])
+    points = points.to(dtype)
     out = layer(params, pose)
     out_d = layer_d(params.to(device), pose.to(device))
-    # Occupancy is steep at the surface: a point there moves with rounding. On the CPU alone,
-    # float32 and float64 differ by up to 2.9e-4 on these points (mean 1.7e-7); the first H200
-    # run (2026-11-27) found 2.5e-4 between cuda and cpu. Max 1e-3, mean 1e-5.
     occupancy, occupancy_d = occ.query(points, out), occ_d.query(points.to(device), out_d)
     parts, parts_d = occ.query(points, out, parts=True), occ_d.query(points.to(device), out_d, parts=True)
     for what, a, b in (("occupancy", occupancy_d, occupancy), ("per-part occupancy", parts_d, parts)):
-        _close(a, b, 1e-3, what, device)
+        _close(a, b, tol["query"], what, device)
         mean = float((a.cpu() - b).abs().mean())
-        assert mean <= 1e-5, f"{what}: mean |{device} - cpu| = {mean:.3g} > 1e-05"
+        assert mean <= tol["query_mean"], f"{what}: mean |{device} - cpu| = {mean:.3g} > {tol['query_mean']:g}"
     assert float(parts.amax()) > 0.9 and float(parts.amin()) == 0.0  # points inside and outside
 
     def terms(o, lay, dev):
@@ -319,21 +331,27 @@ def check_occupancy(device: str, resolve_steps: int = 5) -> None:
     si, coll, grad = terms(occ, layer, "cpu")
     si_d, coll_d, grad_d = terms(occ_d, layer_d, device)
     assert float(si) > 0
-    _close(si_d, si, 1e-3 * float(si), "self-intersection term", device)
-    _close(coll_d, coll, 1e-3 * max(float(coll), 1.0), "collision term", device)
-    _close_grad(grad_d, grad, 5e-3, "d (terms) / d pose", device)
+    _close(si_d, si, tol["si"] * float(si), "self-intersection term", device)
+    _close(coll_d, coll, tol["coll"] * max(float(coll), 1.0), "collision term", device)
+    if dtype == F64:
+        _close_grad(grad_d, grad, tol["grad"], "d (terms) / d pose", device)
+    else:
+        g_d = grad_d.cpu()
+        cos = float(torch.nn.functional.cosine_similarity(g_d.flatten(), grad.flatten(), dim=0))
+        ratio = float(g_d.norm() / grad.norm())
+        assert cos >= tol["grad_cos"], f"d (terms) / d pose: cosine {cos:.3f} between {device} and cpu"
+        assert abs(ratio - 1) <= tol["grad_norm"], f"d (terms) / d pose: norm {ratio:.3f}x the cpu one"
     # A generator on the device is accepted too (its samples differ from the CPU stream's).
     with torch.no_grad():
         si_gen = occ_d.self_intersection_loss(out_d, generator=torch.Generator(device=device).manual_seed(0))
     assert torch.isfinite(si_gen).all() and float(si_gen) > 0
-    if resolve_steps:
+    if resolve_steps and dtype == F64:
         res = resolve_self_intersections(occ, layer, params, pose, steps=resolve_steps)
         res_d = resolve_self_intersections(occ_d, layer_d, params.to(device), pose.to(device), steps=resolve_steps)
         assert res_d.pose.device.type == torch.device(device).type
-        err = float((res_d.loss - res.loss).abs().max())
-        # Adam's steps are about lr * sign(gradient): the small device differences stay small.
-        assert err <= 2e-2 * float(res.loss.abs().max()), f"resolve loss curves differ by {err:.3g}"
-        _close(res_d.pose, res.pose, 5e-3, "resolved pose (rad)", device)
+        err = float((res_d.loss.cpu() - res.loss).abs().max())
+        assert err <= tol["resolve"] * float(res.loss.abs().max()), f"resolve loss curves differ by {err:.3g}"
+        _close(res_d.pose, res.pose, tol["resolve"], "resolved pose (rad)", device)
 
 
 # --------------------------------------------------------------------------- PanoMan
@@ -465,8 +483,9 @@ def test_gpu_mocap_solve():
 
 
 @gpu
-def test_gpu_occupancy():
-    check_occupancy("cuda", resolve_steps=10)
+@pytest.mark.parametrize("dtype", [F32, F64], ids=["f32", "f64"])
+def test_gpu_occupancy(dtype):
+    check_occupancy("cuda", dtype, resolve_steps=10)
 
 
 @gpu
@@ -527,7 +546,8 @@ def test_check_on_cpu_mocap_solve():
 
 @pytest.mark.slow
 def test_check_on_cpu_occupancy():
-    check_occupancy("cpu", resolve_steps=2)
+    check_occupancy("cpu", F64, resolve_steps=2)
+    check_occupancy("cpu", F32)
 
 
 @pytest.mark.slow
