@@ -40,28 +40,30 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--evaldata", type=Path, default=Path(__file__).resolve().parents[2] / "shared/evaldata")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--models", nargs="+", default=["cmu41", "pig39"], help="shipped labelers (cmu41-layout first)")
+    p.add_argument("--models", nargs="+", default=["cmu41", "pig39"], help="labelers (names or weights paths)")
     args = p.parse_args(argv)
     if not args.evaldata.is_dir():
         raise SystemExit(f"--evaldata: {args.evaldata} is not a folder")
     to_cmu = SAME_PLACE
     to_pig = {v: k for k, v in SAME_PLACE.items()}
+    try:
+        models = {name: bench.load_labeler(name) for name in args.models}
+    except (OSError, ValueError) as err:
+        raise SystemExit(f"--models: {err}") from None
     print("| files | model | frames | " + bench.HEADER.split("| frames | ", 1)[1])
-    for name in args.models:
-        model = bench.load_labeler(name)
+    for name, model in models.items():
         cmu_names = "LFWT" in model.label_names
         names = to_cmu if cmu_names else to_pig
-        pooled = {}
         for lab, files in bench.FILES.items():
-            rows = []
+            rows, frames = [], 0
             for rel in files:
                 seq = renamed(bench.read(args.evaldata / rel), names)
+                frames += len(seq.points)
                 rows.append(bench.score_file(model, seq, args.seed, model.num_labels))
                 print(f"_{name} on {Path(rel).stem}: done_", file=sys.stderr, flush=True)
             own = (lab == "cmu41") == cmu_names
-            pooled[lab] = bench.pool(rows, model.num_labels)
             tag = f"**{lab} files** ({'its own lab' if own else 'another lab'})"
-            print(bench.row(tag, name, sum(len(bench.read(args.evaldata / r).points) for r in files), pooled[lab]))
+            print(bench.row(tag, name, frames, bench.pool(rows, model.num_labels)))
 
 
 if __name__ == "__main__":

@@ -41,7 +41,12 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     if not args.evaldata.is_dir():
         raise SystemExit(f"--evaldata: {args.evaldata} is not a folder")
-    model = bench.load_labeler(args.model).eval()
+    try:
+        model = bench.load_labeler(args.model).eval()
+    except (OSError, ValueError) as err:
+        raise SystemExit(f"--model: {err}") from None
+    if "LFWT" not in model.label_names or len(model.label_names) != 41:
+        raise SystemExit(f"--model: {args.model} labels {len(model.label_names)} markers, not the cmu41 layout")
     if model.orienter is None:
         raise SystemExit(f"--model: {args.model} has no first stage (orienter)")
     null = model.num_labels
