@@ -599,13 +599,13 @@ class BodyLayer(nn.Module):
         if self.twist is not None:
             local = batch_major(_local_math(pose, kind, absolute, left, right))[0]
             args = (p.rest_vertices, p.rest_rotations, p.rest_joints, p.offsets, local, transl)
-            if corr is None:
-                g_rot, g_pos, vertices = self.twist(*args)
-            else:  # LBS of the shared rest mesh, plus the skinned displacements (one rest mesh per pose is slow)
-                g_rot, g_pos, vertices, tmats = self.twist(*args, with_mats=True)
-                rel = corr.rest_relative(local, p.rest_rotations, self.parents)[:, corr.needed - 1]
+            # The transforms also bound the outputs (_check_overflow): without them the output
+            # guard scanned every vertex, 40 % of a batch-32 pose on one core.
+            g_rot, g_pos, vertices, mats = self.twist(*args, with_mats=True)
+            if corr is not None:  # LBS of the shared rest mesh, plus the skinned displacements
+                rel = corr.rest_relative(local, p.rest_rotations, self.parents, corr.needed)
                 vertices = corr.posed(
-                    vertices, rel, tmats.permute(1, 3, 2, 0), corr.size_of(p.rest_joints), self._corr_binding()
+                    vertices, rel, mats.permute(1, 3, 2, 0), corr.size_of(p.rest_joints), self._corr_binding()
                 )
             world = homogeneous(g_rot, g_pos)
         else:
