@@ -36,7 +36,14 @@ from tqdm import tqdm
 from unibody import BodyLayer
 from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES
-from unibody.correctives.training import TeacherSetup, draw_identities, size_of, teacher_targets, twist_targets
+from unibody.correctives.training import (
+    TeacherSetup,
+    blended_rotations,
+    draw_identities,
+    size_of,
+    teacher_targets,
+    twist_targets,
+)
 from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.motion import load_motion
 from unibody.rig import JOINT_NAMES
@@ -161,14 +168,24 @@ def _validate(
     best: dict,
     edges: torch.Tensor,
     ew: float,
+    blend: torch.Tensor | None = None,
+    posed: float = 0.0,
 ) -> dict:
-    """Held-out score (mm): mean rest-space error, plus ``sqrt(ew)`` x the mean error of the edge
-    differences when the edge loss is on (the training objective's terms); the best state so far."""
-    with torch.no_grad():
-        err = model.union_displacements(rel, size) - d
+    """Held-out score (mm): mean error, plus ``sqrt(ew)`` x the mean error of the edge differences
+    when the edge loss is on (the training objective's terms), rest-space and posed (``blend``
+    (N, U, 3, 3) applied) mixed by ``posed`` as the loss mixes them; the best state so far."""
+
+    def score(err: torch.Tensor) -> float:
         mm = float(err.norm(dim=-1).mean()) * 1e3
         if ew:
             mm += ew**0.5 * float((err[:, edges[:, 0]] - err[:, edges[:, 1]]).norm(dim=-1).mean()) * 1e3
+        return mm
+
+    with torch.no_grad():
+        err = model.union_displacements(rel, size) - d
+        mm = (1 - posed) * score(err) if posed < 1 else 0.0
+        if posed:
+            mm += posed * score((blend @ err[..., None]).squeeze(-1))
     if mm < best["mm"]:
         best = {"mm": mm, "state": {k: v.clone() for k, v in model.state_dict().items()}}
     return {**best, "last": mm}
@@ -219,6 +236,31 @@ def _union_edges(setup: TeacherSetup) -> torch.Tensor:
     slot[setup.union] = torch.arange(len(setup.union))
     e = slot[e]
     return e[(e >= 0).all(1)]
+
+
+def _blends(chunks: list[dict], union: torch.Tensor, data: Path, target: str) -> torch.Tensor:
+    """(N, U, 3, 3) float32 blended rotations ``M`` of every sample of the chunks on the rig of
+    ``target`` (``LBS(v + d) = LBS(v) + M d`` on the union), from the chunks' identities and
+    rest-relative rotations; cached in ``data/blend_<target>.pt``."""
+    path = data / f"blend_{target}.pt"
+    key = [float(c["rel"].double().sum()) for c in chunks] + [float(c["coeffs"].double().sum()) for c in chunks]
+    if path.exists():
+        cached = torch.load(path, weights_only=True)
+        if isinstance(cached, dict) and cached.get("key") == key:  # the same chunks
+            return cached["blend"]
+    layer = BodyLayer.from_pca(procedural=target == "twist").double()
+    out = []
+    for c in tqdm(chunks, desc="blended rotations", unit="identity"):
+        p = layer.prepare_identity(c["coeffs"][None].double())
+        rr = p.rest_rotations[0]
+        rest_local = rr[layer.parents[1:]].transpose(-1, -2) @ rr[1:]
+        local = rest_local @ c["rel"].double()  # rel = rest_local^T local
+        out.append(blended_rotations(layer, p, local, union, absolute=True)[1].float())
+    out = torch.cat(out)
+    tmp = path.with_suffix(".tmp")
+    torch.save({"blend": out, "key": key}, tmp)
+    tmp.replace(path)
+    return out
 
 
 def _freeze_fingers(model: Correctives, rel: torch.Tensor) -> None:
@@ -287,6 +329,17 @@ def train(args: argparse.Namespace, command: str) -> None:
             "inside the masked vertices"
         )
     edges = _union_edges(setup)
+    blend = v_blend = None
+    pw = args.posed_weight
+    if pw:
+        blend = _blends(chunks, setup.union, data, args.target)
+        ntrain = len(rel)
+        blend, v_blend = blend[:ntrain], blend[ntrain:]
+        model.meta["posed_loss"] = (
+            f"the loss (point and edge terms) is {1 - pw:g} x its rest-space form + {pw:g} x its posed form: "
+            "the errors M (pred - target), M each sample's blended rotations of the rig "
+            "(LBS(v + d) = LBS(v) + M d)"
+        )
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     ckpt = data / f"checkpoint_{args.target}.pt"
     step, elapsed, best = 0, 0.0, {"mm": float("inf"), "last": float("inf"), "state": None}
@@ -298,10 +351,17 @@ def train(args: argparse.Namespace, command: str) -> None:
         print(f"resumed at step {step}, {elapsed / 60:.1f} min")
     budget = args.minutes * 60
     if best["state"] is None:  # the starting point (an --init) competes too
-        best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight)
+        best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw)
     gen = torch.Generator().manual_seed(args.seed + step)
     n = len(rel)
     target = d / (size / size_ref)[:, None, None]
+
+    def fit(err: torch.Tensor) -> torch.Tensor:
+        loss = err.square().sum(-1).mean()
+        if args.edge_weight:  # the error of the edges' displacement differences too: what edge strain sees
+            loss = loss + args.edge_weight * (err[:, edges[:, 0]] - err[:, edges[:, 1]]).square().sum(-1).mean()
+        return loss
+
     bar = tqdm(total=int(budget), initial=int(elapsed), desc="train", unit="s")
     t0, last = time.perf_counter() - elapsed, time.perf_counter()
     while elapsed < budget:
@@ -310,9 +370,9 @@ def train(args: argparse.Namespace, command: str) -> None:
         idx = torch.randint(n, (args.batch,), generator=gen)
         pred = model.union_displacements(rel[idx], size_ref * torch.ones(1))
         err = pred - target[idx]
-        loss = err.square().sum(-1).mean()
-        if args.edge_weight:  # the error of the edges' displacement differences too: what edge strain sees
-            loss = loss + args.edge_weight * (err[:, edges[:, 0]] - err[:, edges[:, 1]]).square().sum(-1).mean()
+        loss = (1 - pw) * fit(err) if pw < 1 else 0.0
+        if pw:  # posed: what the surface shows (M is far from a rotation where bones blend)
+            loss = loss + pw * fit((blend[idx] @ err[..., None]).squeeze(-1) * (size[idx] / size_ref)[:, None, None])
         if args.small_weight:  # small poses: no displacement (LBS is fine there)
             axis = torch.nn.functional.normalize(torch.randn(args.batch, 77, 3, generator=gen), dim=-1)
             small = axis_angle_to_matrix(axis * 0.2 * torch.rand(args.batch, 77, 1, generator=gen))
@@ -329,7 +389,7 @@ def train(args: argparse.Namespace, command: str) -> None:
         if (
             time.perf_counter() - last > args.validate_every
         ):  # checkpoint, and keep the best model on the held-out identities
-            best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight)
+            best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw)
             torch.save(
                 {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed, "best": best},
                 ckpt,
@@ -337,7 +397,7 @@ def train(args: argparse.Namespace, command: str) -> None:
             bar.write(f"step {step}: held-out score {best['last']:.3f} mm (best {best['mm']:.3f} mm)")
             last = time.perf_counter()
     bar.close()
-    best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight)
+    best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw)
     torch.save(
         {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed, "best": best}, ckpt
     )
@@ -422,6 +482,13 @@ def main() -> None:
         default=0.0,
         help="weight of a loss on the displacement differences along mesh edges (what edge strain sees)",
     )
+    parser.add_argument(
+        "--posed-weight",
+        type=float,
+        default=0.0,
+        help="share W in [0, 1] of the loss measured on the posed mesh (each sample's blended rotations "
+        "applied; computed once and cached under --data): (1 - W) rest-space + W posed",
+    )
     parser.add_argument("--init", default=None, help="start from these weights (a fine-tune; same structure)")
     parser.add_argument(
         "--small-weight",
@@ -433,6 +500,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.small_weight < 0:
         parser.error(f"--small-weight: expected >= 0, got {args.small_weight}")
+    if not 0 <= args.posed_weight <= 1:
+        parser.error(f"--posed-weight: expected a number in [0, 1], got {args.posed_weight}")
     if args.edge_weight < 0:
         parser.error(f"--edge-weight: expected >= 0, got {args.edge_weight}")
     if args.init and not Path(args.init).is_file():

@@ -115,11 +115,15 @@ def test_float32_matches_float64(chain):
     assert (a.double() - b).abs().max() < 1e-5
 
 
-def test_fast_path_matches_autograd_path(pca):
+@pytest.mark.parametrize("batch", [1, 2, 40], ids=["b1", "b2", "b40"])
+@pytest.mark.parametrize("procedural", [False, True], ids=["plain", "twist"])
+def test_fast_path_matches_autograd_path(pca, batch, procedural):
+    """The no-gradient path (one product at batch 1, planes of at most 32 poses above) equals autograd's."""
     layer, prepared = pca
     model = _pca_model(layer)
-    on = BodyLayer.from_pca(correctives=model)
+    on = BodyLayer.from_pca(correctives=model, procedural=procedural)
     poses, _ = stress_poses(torch.Generator().manual_seed(0), seeded=2)
+    poses = poses.repeat(batch // len(poses) + 1, 1, 1)[:batch]
     fast = on.pose(prepared, poses).vertices
     slow = on.pose(prepared, poses.clone().requires_grad_(True)).vertices
     assert (fast - slow).abs().max() < 1e-5
@@ -196,6 +200,37 @@ def test_shipped_weights_carry_their_recipe(procedural):
     assert path.stat().st_size < 5e6
 
 
+def test_train_script_blends_rebuild_the_poses_of_a_chunk(pca, setup, tmp_path):
+    """The posed loss's blended rotations, rebuilt from a chunk's identity and rest-relative
+    rotations, map a rest-space displacement onto the posed mesh exactly (float64): on both rigs."""
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
+    spec = importlib.util.spec_from_file_location("train_correctives", script)
+    tc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tc)
+    layer, _ = pca
+    coeffs = 0.5 * torch.randn(layer.identity.num_params, generator=torch.Generator().manual_seed(4))
+    poses, labels = stress_poses(torch.Generator().manual_seed(0), seeded=0)
+    pose = poses[[labels.index("forearm twist 150 (left)"), labels.index("elbow 150 (left)")]].double()
+    u = setup.union
+    d = 0.01 * torch.randn(2, len(u), 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    for target in ("plain", "twist"):
+        lay = BodyLayer.from_pca(procedural=target == "twist").double()
+        p = lay.prepare_identity(coeffs[None].double())
+        rel = Correctives.rest_relative(lay.local_rotations(pose), p.rest_rotations, lay.parents)
+        chunk = {"rel": rel.float(), "coeffs": coeffs}
+        blend = tc._blends([chunk], u, tmp_path, target)
+        assert blend.shape == (2, len(u), 3, 3) and (tmp_path / f"blend_{target}.pt").is_file()
+        full = torch.zeros(2, lay.num_vertices, 3, dtype=torch.float64).index_copy(1, u, d)
+        shifted = PreparedIdentity(p.rest_vertices + full, *(t.expand(2, *t.shape[1:]) for t in vars_(p)[1:]))
+        moved = lay.pose(shifted, pose).vertices[:, u] - lay.pose(p, pose).vertices[:, u]
+        # float32 storage of rel and M: micrometres on centimetre moves
+        assert (moved - (blend.double() @ d[..., None]).squeeze(-1)).norm(dim=-1).max() < 1e-5
+        assert torch.equal(tc._blends([chunk], u, tmp_path, target), blend)  # the cache
+
+
 @pytest.mark.parametrize("shard", ["2/2", "a/b", "-1/2"])
 def test_train_script_rejects_a_bad_shard(shard):
     """generate --shard K/N: one line naming the argument, exit status 2, no traceback."""
@@ -206,6 +241,20 @@ def test_train_script_rejects_a_bad_shard(shard):
     script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
     res = subprocess.run([sys.executable, str(script), "generate", "--shard", shard], capture_output=True, text=True)
     assert res.returncode == 2 and "--shard" in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize("weight", ["1.5", "-0.1"])
+def test_train_script_rejects_a_bad_posed_weight(weight):
+    """train --posed-weight W: W in [0, 1], else one line naming the argument, exit status 2."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
+    res = subprocess.run(
+        [sys.executable, str(script), "train", "--posed-weight", weight], capture_output=True, text=True
+    )
+    assert res.returncode == 2 and "--posed-weight" in res.stderr and "Traceback" not in res.stderr
 
 
 def test_procedural_layer_loads_the_twist_weights():

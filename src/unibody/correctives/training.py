@@ -148,7 +148,9 @@ def _rest_space(r: torch.Tensor, blended: torch.Tensor) -> torch.Tensor:
     return d * (MAX_TARGET_M / n.clamp_min(MAX_TARGET_M))
 
 
-def blended_rotations(layer, prepared, pose: torch.Tensor, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # noqa: ANN001
+def blended_rotations(
+    layer, prepared, pose: torch.Tensor, vertices: torch.Tensor, *, absolute: bool = False
+) -> tuple[torch.Tensor, torch.Tensor]:  # noqa: ANN001
     """The posed meshes of ``layer`` (any rig, twist joints included) and its blended rotations.
 
     Skinning is affine in the rest vertex, ``LBS(v + e) = LBS(v) + M_v e``, whatever joints and
@@ -156,8 +158,9 @@ def blended_rotations(layer, prepared, pose: torch.Tensor, vertices: torch.Tenso
     whole rest mesh is shifted by the unit vectors (exact up to rounding): no rig internals needed.
 
     Args:
-        layer: a BodyLayer (plain or procedural); prepared: the identity (batch 1); pose: (B, 77, 3);
-        vertices: (U,) int64, the vertices whose ``M_v`` is wanted.
+        layer: a BodyLayer (plain or procedural); prepared: the identity (batch 1); pose: (B, 77, 3)
+            or any form :meth:`BodyLayer.pose` takes; vertices: (U,) int64, the vertices whose
+            ``M_v`` is wanted; absolute: whether ``pose`` holds absolute local rotations.
 
     Returns:
         ``(posed (B, V, 3), blended (B, U, 3, 3))``, in the layer's dtype.
@@ -165,13 +168,13 @@ def blended_rotations(layer, prepared, pose: torch.Tensor, vertices: torch.Tenso
     from ..body import PreparedIdentity
 
     p = prepared
-    posed = layer.pose(p, pose, correctives=False).vertices
+    posed = layer.pose(p, pose, absolute=absolute, correctives=False).vertices
     cols = []
     for c in range(3):
         shift = p.rest_vertices.new_zeros(3)
         shift[c] = 1.0
         moved = PreparedIdentity(p.rest_vertices + shift, p.rest_rotations, p.rest_joints, p.offsets)
-        cols.append((layer.pose(moved, pose, correctives=False).vertices - posed)[:, vertices])
+        cols.append((layer.pose(moved, pose, absolute=absolute, correctives=False).vertices - posed)[:, vertices])
     return posed, torch.stack(cols, -1)
 
 
