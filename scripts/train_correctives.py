@@ -30,10 +30,12 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
 from unibody import BodyLayer
+from unibody.correctives.metrics import SurfaceMeasures, cone_volume
 from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES
 from unibody.correctives.training import (
@@ -263,6 +265,58 @@ def _blends(chunks: list[dict], union: torch.Tensor, data: Path, target: str) ->
     return out
 
 
+def _segment_data(chunks: list[dict], union: torch.Tensor, data: Path, target: str) -> dict:
+    """What the volume loss needs: the limb segments' faces (:class:`SurfaceMeasures`) over their
+    vertices ``S``, and per sample the rig's LBS of ``S``, the posed cone apexes and the rest
+    volumes; cached in ``data/segments_<target>.pt``."""
+    layer = BodyLayer.from_pca(procedural=target == "twist").double()
+    measures = SurfaceMeasures.from_layer(BodyLayer.from_pca())
+    verts = torch.from_numpy(np.unique(np.concatenate(measures.segment_faces)))
+    where = torch.full((layer.num_vertices,), -1, dtype=torch.int64)
+    where[verts] = torch.arange(len(verts))
+    faces = [where[torch.from_numpy(f)] for f in measures.segment_faces]
+    inside = where[union] >= 0
+    out = {"faces": faces, "slot": torch.nonzero(inside).flatten(), "at": where[union][inside]}
+    path = data / f"segments_{target}.pt"
+    key = [float(c["rel"].double().sum()) for c in chunks] + [float(c["coeffs"].double().sum()) for c in chunks]
+    if path.exists():
+        cached = torch.load(path, weights_only=True)
+        if cached.get("key") == key and torch.equal(cached["vertices"], verts):
+            return {**out, **cached}
+    lbs, apex, rest = [], [], []
+    for c in tqdm(chunks, desc="segment volumes", unit="identity"):
+        p = layer.prepare_identity(c["coeffs"][None].double())
+        rr = p.rest_rotations[0]
+        local = rr[layer.parents[1:]].transpose(-1, -2) @ rr[1:] @ c["rel"].double()
+        posed = layer.pose(p, local, absolute=True, correctives=False)
+        apex0, apex1 = measures.segment_apexes(p.rest_rotations, p.rest_joints, posed.transforms)
+        x = p.rest_vertices[:, verts]
+        rest.append(
+            torch.stack([cone_volume(x, f, apex0[:, k]) for k, f in enumerate(faces)], -1).expand(len(local), -1)
+        )
+        lbs.append(posed.vertices[:, verts])
+        apex.append(apex1)
+    cached = {
+        "key": key,
+        "vertices": verts,
+        "lbs": torch.cat(lbs).float(),
+        "apex": torch.cat(apex).float(),
+        "rest": torch.cat(rest).float(),
+    }
+    tmp = path.with_suffix(".tmp")
+    torch.save(cached, tmp)
+    tmp.replace(path)
+    return {**out, **cached}
+
+
+def _volume_loss(seg: dict, idx: torch.Tensor, moved: torch.Tensor) -> torch.Tensor:
+    """Mean squared relative change of the segments' volumes of samples ``idx`` when the union
+    vertices move by ``moved`` (B, U, 3) on the posed mesh."""
+    x = seg["lbs"][idx].index_add(1, seg["at"], moved[:, seg["slot"]])
+    vol = torch.stack([cone_volume(x, f, seg["apex"][idx, k]) for k, f in enumerate(seg["faces"])], -1)
+    return (vol / seg["rest"][idx] - 1).square().mean()
+
+
 def _freeze_fingers(model: Correctives, rel: torch.Tensor) -> None:
     """Hold the finger inputs (straight in every training pose) at their training mean."""
     fingers = torch.tensor([j + 1 for j in FINGERS])
@@ -329,12 +383,19 @@ def train(args: argparse.Namespace, command: str) -> None:
             "inside the masked vertices"
         )
     edges = _union_edges(setup)
-    blend = v_blend = None
-    pw = args.posed_weight
-    if pw:
+    blend = v_blend = seg = None
+    pw, vw = args.posed_weight, args.volume_weight
+    if pw or vw:
         blend = _blends(chunks, setup.union, data, args.target)
         ntrain = len(rel)
-        blend, v_blend = blend[:ntrain], blend[ntrain:]
+        blend, v_blend = blend[:ntrain], (blend[ntrain:] if pw else None)
+    if vw:
+        seg = _segment_data(chunks, setup.union, data, args.target)
+        model.meta["volume_loss"] = (
+            f"{vw:g} x the mean squared relative change of the limb segments' volumes (the benchmark's cone "
+            "volumes) on the posed training meshes"
+        )
+    if pw:
         model.meta["posed_loss"] = (
             f"the loss (point and edge terms) is {1 - pw:g} x its rest-space form + {pw:g} x its posed form: "
             "the errors M (pred - target), M each sample's blended rotations of the rig "
@@ -373,6 +434,9 @@ def train(args: argparse.Namespace, command: str) -> None:
         loss = (1 - pw) * fit(err) if pw < 1 else 0.0
         if pw:  # posed: what the surface shows (M is far from a rotation where bones blend)
             loss = loss + pw * fit((blend[idx] @ err[..., None]).squeeze(-1) * (size[idx] / size_ref)[:, None, None])
+        if vw:  # the limbs' volumes, which the teacher holds
+            moved = (blend[idx] @ pred[..., None]).squeeze(-1) * (size[idx] / size_ref)[:, None, None]
+            loss = loss + vw * _volume_loss(seg, idx, moved)
         if args.small_weight:  # small poses: no displacement (LBS is fine there)
             axis = torch.nn.functional.normalize(torch.randn(args.batch, 77, 3, generator=gen), dim=-1)
             small = axis_angle_to_matrix(axis * 0.2 * torch.rand(args.batch, 77, 1, generator=gen))
@@ -489,6 +553,13 @@ def main() -> None:
         help="share W in [0, 1] of the loss measured on the posed mesh (each sample's blended rotations "
         "applied; computed once and cached under --data): (1 - W) rest-space + W posed",
     )
+    parser.add_argument(
+        "--volume-weight",
+        type=float,
+        default=0.0,
+        help="weight of a loss on the limb segments' volume change on the posed training meshes (the teacher "
+        "keeps them at rest volume; segment data computed once and cached under --data)",
+    )
     parser.add_argument("--init", default=None, help="start from these weights (a fine-tune; same structure)")
     parser.add_argument(
         "--small-weight",
@@ -502,6 +573,8 @@ def main() -> None:
         parser.error(f"--small-weight: expected >= 0, got {args.small_weight}")
     if not 0 <= args.posed_weight <= 1:
         parser.error(f"--posed-weight: expected a number in [0, 1], got {args.posed_weight}")
+    if args.volume_weight < 0:
+        parser.error(f"--volume-weight: expected >= 0, got {args.volume_weight}")
     if args.edge_weight < 0:
         parser.error(f"--edge-weight: expected >= 0, got {args.edge_weight}")
     if args.init and not Path(args.init).is_file():

@@ -243,6 +243,32 @@ def test_train_script_rejects_a_bad_shard(shard):
     assert res.returncode == 2 and "--shard" in res.stderr and "Traceback" not in res.stderr
 
 
+def test_train_script_volume_loss_sees_what_the_teacher_keeps(pca, setup, tmp_path):
+    """The volume loss, on a chunk rebuilt like the train stage's: near 0 for the teacher's targets
+    (it holds each segment's volume), not for plain LBS, and differentiable in the moves."""
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
+    spec = importlib.util.spec_from_file_location("train_correctives", script)
+    tc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tc)
+    layer, prepared = pca
+    poses, labels = stress_poses(torch.Generator().manual_seed(0), seeded=0)
+    pose = poses[[labels.index("elbow 150 (left)"), labels.index("squat: hip 120 + knee 150 (left)")]]
+    _, _, d = teacher_targets(layer, prepared, pose, setup)
+    rel = Correctives.rest_relative(layer.local_rotations(pose), prepared.rest_rotations, layer.parents)
+    chunk = {"rel": rel.float(), "coeffs": torch.zeros(layer.identity.num_params)}
+    blend = tc._blends([chunk], setup.union, tmp_path, "plain")
+    seg = tc._segment_data([chunk], setup.union, tmp_path, "plain")
+    idx = torch.arange(2)
+    moved = (blend @ d.float()[..., None]).squeeze(-1).requires_grad_(True)
+    teacher, lbs = tc._volume_loss(seg, idx, moved), tc._volume_loss(seg, idx, 0 * moved)
+    assert teacher.item() < 0.05 * lbs.item() and lbs.item() > 1e-3  # rms change: LBS > 3 %
+    teacher.backward()
+    assert moved.grad.abs().sum() > 0
+
+
 @pytest.mark.parametrize("weight", ["1.5", "-0.1"])
 def test_train_script_rejects_a_bad_posed_weight(weight):
     """train --posed-weight W: W in [0, 1], else one line naming the argument, exit status 2."""
