@@ -172,10 +172,13 @@ def _validate(
     ew: float,
     blend: torch.Tensor | None = None,
     posed: float = 0.0,
+    volume: tuple[float, dict, torch.Tensor] | None = None,
 ) -> dict:
     """Held-out score (mm): mean error, plus ``sqrt(ew)`` x the mean error of the edge differences
     when the edge loss is on (the training objective's terms), rest-space and posed (``blend``
-    (N, U, 3, 3) applied) mixed by ``posed`` as the loss mixes them; the best state so far."""
+    (N, U, 3, 3) applied) mixed by ``posed`` as the loss mixes them, plus ``1e3 sqrt(vw x the
+    volume loss)`` with ``volume = (vw, segment data, the held-out samples' ids in it)``; the best
+    state so far."""
 
     def score(err: torch.Tensor) -> float:
         mm = float(err.norm(dim=-1).mean()) * 1e3
@@ -188,6 +191,10 @@ def _validate(
         mm = (1 - posed) * score(err) if posed < 1 else 0.0
         if posed:
             mm += posed * score((blend @ err[..., None]).squeeze(-1))
+        if volume is not None:
+            vw, seg, ids = volume
+            moved = (blend @ model.union_displacements(rel, size)[..., None]).squeeze(-1)
+            mm += 1e3 * (vw * float(_volume_loss(seg, ids, moved))) ** 0.5
     if mm < best["mm"]:
         best = {"mm": mm, "state": {k: v.clone() for k, v in model.state_dict().items()}}
     return {**best, "last": mm}
@@ -388,9 +395,11 @@ def train(args: argparse.Namespace, command: str) -> None:
     if pw or vw:
         blend = _blends(chunks, setup.union, data, args.target)
         ntrain = len(rel)
-        blend, v_blend = blend[:ntrain], (blend[ntrain:] if pw else None)
+        blend, v_blend = blend[:ntrain], blend[ntrain:]
+    v_volume = None
     if vw:
         seg = _segment_data(chunks, setup.union, data, args.target)
+        v_volume = (vw, seg, torch.arange(ntrain, ntrain + len(v_rel)))
         model.meta["volume_loss"] = (
             f"{vw:g} x the mean squared relative change of the limb segments' volumes (the benchmark's cone "
             "volumes) on the posed training meshes"
@@ -412,7 +421,7 @@ def train(args: argparse.Namespace, command: str) -> None:
         print(f"resumed at step {step}, {elapsed / 60:.1f} min")
     budget = args.minutes * 60
     if best["state"] is None:  # the starting point (an --init) competes too
-        best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw)
+        best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw, v_volume)
     gen = torch.Generator().manual_seed(args.seed + step)
     n = len(rel)
     target = d / (size / size_ref)[:, None, None]
@@ -453,7 +462,7 @@ def train(args: argparse.Namespace, command: str) -> None:
         if (
             time.perf_counter() - last > args.validate_every
         ):  # checkpoint, and keep the best model on the held-out identities
-            best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw)
+            best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw, v_volume)
             torch.save(
                 {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed, "best": best},
                 ckpt,
@@ -461,7 +470,7 @@ def train(args: argparse.Namespace, command: str) -> None:
             bar.write(f"step {step}: held-out score {best['last']:.3f} mm (best {best['mm']:.3f} mm)")
             last = time.perf_counter()
     bar.close()
-    best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw)
+    best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw, v_volume)
     torch.save(
         {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed, "best": best}, ckpt
     )
