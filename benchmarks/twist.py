@@ -136,5 +136,6 @@ def main() -> None:
         print(f"pose(), batch 64, float32, {torch.get_num_threads()} threads: {k:16s} {v:6.1f} ms")
     print(f"procedural twist / plain LBS: {ms['procedural twist'] / ms['plain LBS']:.2f}x")
 
+
 if __name__ == "__main__":
     main()

@@ -187,14 +187,14 @@ def _validate(
         return mm
 
     with torch.no_grad():
-        err = model.union_displacements(rel, size) - d
+        pred = model.union_displacements(rel, size)
+        err = pred - d
         mm = (1 - posed) * score(err) if posed < 1 else 0.0
         if posed:
             mm += posed * score((blend @ err[..., None]).squeeze(-1))
         if volume is not None:
             vw, seg, ids = volume
-            moved = (blend @ model.union_displacements(rel, size)[..., None]).squeeze(-1)
-            mm += 1e3 * (vw * float(_volume_loss(seg, ids, moved))) ** 0.5
+            mm += 1e3 * (vw * float(_volume_loss(seg, ids, (blend @ pred[..., None]).squeeze(-1)))) ** 0.5
     if mm < best["mm"]:
         best = {"mm": mm, "state": {k: v.clone() for k, v in model.state_dict().items()}}
     return {**best, "last": mm}
@@ -247,28 +247,50 @@ def _union_edges(setup: TeacherSetup) -> torch.Tensor:
     return e[(e >= 0).all(1)]
 
 
+def _chunks_key(chunks: list[dict]) -> list[float]:
+    """A fingerprint of the chunks (their rotations and identities), for the caches below."""
+    return [float(c["rel"].double().sum()) for c in chunks] + [float(c["coeffs"].double().sum()) for c in chunks]
+
+
+def _chunk_pose(layer: BodyLayer, chunk: dict) -> tuple:
+    """A chunk's identity, prepared by ``layer`` (float64), and its absolute local rotations (B, 77, 3, 3)."""
+    p = layer.prepare_identity(chunk["coeffs"][None].double())
+    rr = p.rest_rotations[0]
+    rest_local = rr[layer.parents[1:]].transpose(-1, -2) @ rr[1:]
+    return p, rest_local @ chunk["rel"].double()  # rel = rest_local^T local
+
+
+def _cached(path: Path, key: list[float]) -> dict | None:
+    """The cache at ``path`` when it was made from the same chunks, else None."""
+    if path.exists():
+        cached = torch.load(path, weights_only=True)
+        if isinstance(cached, dict) and cached.get("key") == key:
+            return cached
+    return None
+
+
+def _save(path: Path, value: dict) -> None:
+    """Write a cache atomically."""
+    tmp = path.with_suffix(".tmp")
+    torch.save(value, tmp)
+    tmp.replace(path)
+
+
 def _blends(chunks: list[dict], union: torch.Tensor, data: Path, target: str) -> torch.Tensor:
     """(N, U, 3, 3) float32 blended rotations ``M`` of every sample of the chunks on the rig of
     ``target`` (``LBS(v + d) = LBS(v) + M d`` on the union), from the chunks' identities and
     rest-relative rotations; cached in ``data/blend_<target>.pt``."""
-    path = data / f"blend_{target}.pt"
-    key = [float(c["rel"].double().sum()) for c in chunks] + [float(c["coeffs"].double().sum()) for c in chunks]
-    if path.exists():
-        cached = torch.load(path, weights_only=True)
-        if isinstance(cached, dict) and cached.get("key") == key:  # the same chunks
-            return cached["blend"]
+    path, key = data / f"blend_{target}.pt", _chunks_key(chunks)
+    cached = _cached(path, key)
+    if cached is not None:
+        return cached["blend"]
     layer = BodyLayer.from_pca(procedural=target == "twist").double()
     out = []
     for c in tqdm(chunks, desc="blended rotations", unit="identity"):
-        p = layer.prepare_identity(c["coeffs"][None].double())
-        rr = p.rest_rotations[0]
-        rest_local = rr[layer.parents[1:]].transpose(-1, -2) @ rr[1:]
-        local = rest_local @ c["rel"].double()  # rel = rest_local^T local
+        p, local = _chunk_pose(layer, c)
         out.append(blended_rotations(layer, p, local, union, absolute=True)[1].float())
     out = torch.cat(out)
-    tmp = path.with_suffix(".tmp")
-    torch.save({"blend": out, "key": key}, tmp)
-    tmp.replace(path)
+    _save(path, {"blend": out, "key": key})
     return out
 
 
@@ -284,17 +306,13 @@ def _segment_data(chunks: list[dict], union: torch.Tensor, data: Path, target: s
     faces = [where[torch.from_numpy(f)] for f in measures.segment_faces]
     inside = where[union] >= 0
     out = {"faces": faces, "slot": torch.nonzero(inside).flatten(), "at": where[union][inside]}
-    path = data / f"segments_{target}.pt"
-    key = [float(c["rel"].double().sum()) for c in chunks] + [float(c["coeffs"].double().sum()) for c in chunks]
-    if path.exists():
-        cached = torch.load(path, weights_only=True)
-        if cached.get("key") == key and torch.equal(cached["vertices"], verts):
-            return {**out, **cached}
+    path, key = data / f"segments_{target}.pt", _chunks_key(chunks)
+    cached = _cached(path, key)
+    if cached is not None and torch.equal(cached["vertices"], verts):
+        return {**out, **cached}
     lbs, apex, rest = [], [], []
     for c in tqdm(chunks, desc="segment volumes", unit="identity"):
-        p = layer.prepare_identity(c["coeffs"][None].double())
-        rr = p.rest_rotations[0]
-        local = rr[layer.parents[1:]].transpose(-1, -2) @ rr[1:] @ c["rel"].double()
+        p, local = _chunk_pose(layer, c)
         posed = layer.pose(p, local, absolute=True, correctives=False)
         apex0, apex1 = measures.segment_apexes(p.rest_rotations, p.rest_joints, posed.transforms)
         x = p.rest_vertices[:, verts]
@@ -310,9 +328,7 @@ def _segment_data(chunks: list[dict], union: torch.Tensor, data: Path, target: s
         "apex": torch.cat(apex).float(),
         "rest": torch.cat(rest).float(),
     }
-    tmp = path.with_suffix(".tmp")
-    torch.save(cached, tmp)
-    tmp.replace(path)
+    _save(path, cached)
     return {**out, **cached}
 
 
@@ -441,11 +457,12 @@ def train(args: argparse.Namespace, command: str) -> None:
         pred = model.union_displacements(rel[idx], size_ref * torch.ones(1))
         err = pred - target[idx]
         loss = (1 - pw) * fit(err) if pw < 1 else 0.0
+        if pw or vw:  # on the posed mesh, at the samples' real size
+            m, scale = blend[idx], (size[idx] / size_ref)[:, None, None]
         if pw:  # posed: what the surface shows (M is far from a rotation where bones blend)
-            loss = loss + pw * fit((blend[idx] @ err[..., None]).squeeze(-1) * (size[idx] / size_ref)[:, None, None])
+            loss = loss + pw * fit((m @ err[..., None]).squeeze(-1) * scale)
         if vw:  # the limbs' volumes, which the teacher holds
-            moved = (blend[idx] @ pred[..., None]).squeeze(-1) * (size[idx] / size_ref)[:, None, None]
-            loss = loss + vw * _volume_loss(seg, idx, moved)
+            loss = loss + vw * _volume_loss(seg, idx, (m @ pred[..., None]).squeeze(-1) * scale)
         if args.small_weight:  # small poses: no displacement (LBS is fine there)
             axis = torch.nn.functional.normalize(torch.randn(args.batch, 77, 3, generator=gen), dim=-1)
             small = axis_angle_to_matrix(axis * 0.2 * torch.rand(args.batch, 77, 1, generator=gen))

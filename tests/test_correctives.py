@@ -269,18 +269,19 @@ def test_train_script_volume_loss_sees_what_the_teacher_keeps(pca, setup, tmp_pa
     assert moved.grad.abs().sum() > 0
 
 
-@pytest.mark.parametrize("weight", ["1.5", "-0.1"])
-def test_train_script_rejects_a_bad_posed_weight(weight):
-    """train --posed-weight W: W in [0, 1], else one line naming the argument, exit status 2."""
+@pytest.mark.parametrize(
+    ("option", "weight"), [("--posed-weight", "1.5"), ("--posed-weight", "-0.1"), ("--volume-weight", "-1")]
+)
+def test_train_script_rejects_a_bad_loss_weight(option, weight):
+    """train --posed-weight W (W in [0, 1]) and --volume-weight V (V >= 0): else one line naming
+    the argument, exit status 2."""
     import subprocess
     import sys
     from pathlib import Path
 
     script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
-    res = subprocess.run(
-        [sys.executable, str(script), "train", "--posed-weight", weight], capture_output=True, text=True
-    )
-    assert res.returncode == 2 and "--posed-weight" in res.stderr and "Traceback" not in res.stderr
+    res = subprocess.run([sys.executable, str(script), "train", option, weight], capture_output=True, text=True)
+    assert res.returncode == 2 and option in res.stderr and "Traceback" not in res.stderr
 
 
 def test_procedural_layer_loads_the_twist_weights():

@@ -116,7 +116,6 @@ class Correctives(nn.Module):
         # The union of the masks, sorted: where f may be non-zero.
         union, inverse = torch.unique(self.vertex_ids, return_inverse=True)
         self.register_buffer("union", union)
-        self.register_buffer("_slot", inverse)
         # Posing decodes plane by plane: each mask's rows reordered (xyz, vertex), so its product
         # is (3, V_k, B), and each row's place in the (3 U, B) planes of the union.
         perm, place = [], []
