@@ -176,6 +176,22 @@ def small(layer: BodyLayer, tag: str, args: argparse.Namespace) -> None:
         where = "rest pose" if around_rest else "T-pose"
         print(f"small poses, {tag} (every joint within 0.2 rad of the {where}): change mean {change.mean():.3f} mm "
               f"(per mesh max {change.mean(-1).max():.3f} mm), largest vertex {change.max():.2f} mm")  # fmt: skip
+    # How the limbs' volumes at the T-pose vary with the body (the teacher keeps each at 100 %)
+    measures = SurfaceMeasures.from_layer(layer)
+    vols = {False: [], True: []}
+    for c in coeffs:
+        p = layer.prepare_identity(c[None])
+        for on in vols:
+            out = layer.pose(p, torch.zeros(1, 77, 3), correctives=on)
+            vols[on].append(measures.segment_volumes(p.rest_vertices, p.rest_rotations, p.rest_joints, out.vertices,
+                                                     out.transforms)[0])  # fmt: skip
+    for on, rows in vols.items():
+        v = torch.stack(rows)  # (identities, segments): left Arm, ForeArm, Leg, Shin, then right
+        kinds = ("upper arm", "forearm", "thigh", "shin")
+        text = ", ".join(f"{k} {float(v[:, [i, i + 4]].min()):.0%}-{float(v[:, [i, i + 4]].max()):.0%}"
+                         for i, k in enumerate(kinds))  # fmt: skip
+        print(f"T-pose segment volumes / rest over {len(v)} identities, {tag}, {'with' if on else 'without'} "
+              f"correctives: {text}")  # fmt: skip
 
 
 def inversion(layer: BodyLayer, args: argparse.Namespace) -> None:

@@ -35,7 +35,7 @@ import torch
 from tqdm import tqdm
 
 from unibody import BodyLayer
-from unibody.correctives.metrics import SurfaceMeasures, cone_volume
+from unibody.correctives.metrics import SEGMENTS, SurfaceMeasures, cone_volume
 from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES
 from unibody.correctives.training import (
@@ -145,8 +145,12 @@ def generate(args: argparse.Namespace) -> None:
         tmp.rename(data / f"chunk_{i:05d}.pt")
 
 
-def build_model(layer: BodyLayer, setup: TeacherSetup, size_ref: float, meta: dict, hidden: int) -> Correctives:
-    """Active joints: the stressed ones; inputs: the joint, its parent, its children (not Hips/Root)."""
+def build_model(
+    layer: BodyLayer, setup: TeacherSetup, size_ref: float, meta: dict, hidden: int, shape: bool = False
+) -> Correctives:
+    """Active joints: the stressed ones; inputs: the joint, its parent, its children (not Hips/Root);
+    with ``shape``, the identity's build too (the limb segments of :data:`SEGMENTS`, each its
+    vertices of dominant weight; feature statistics 0 / 1 until :func:`_shape_inputs` sets them)."""
     names, parents = layer.joint_names, setup.parents.tolist()
     rows, verts = [], []
     for name, mask in setup.masks.items():
@@ -157,9 +161,62 @@ def build_model(layer: BodyLayer, setup: TeacherSetup, size_ref: float, meta: di
         verts.append(torch.from_numpy(mask.nonzero()[0]))
     width = max(len(r) for r in rows)
     inputs = torch.tensor([r + [-1] * (width - len(r)) for r in rows])
+    spec = None
+    if shape:
+        dominant = layer.skinning.dense().argmax(1)
+        pairs = [(names.index(a), names.index(b)) for a, b in SEGMENTS]
+        n = len(pairs) + 1
+        spec = {
+            "joints": pairs,
+            "vertices": [torch.nonzero(dominant == a).flatten() for a, _ in pairs],
+            "mean": torch.zeros(n),
+            "std": torch.ones(n),
+        }
     return Correctives(
-        inputs, verts, layer.num_vertices, hidden=hidden, size_ref=size_ref, joint_names=tuple(setup.masks), meta=meta
+        inputs,
+        verts,
+        layer.num_vertices,
+        hidden=hidden,
+        size_ref=size_ref,
+        joint_names=tuple(setup.masks),
+        meta=meta,
+        shape=spec,
     )
+
+
+def _load_init(model: Correctives, path: str) -> Correctives:
+    """Copy the parameters of the weights at ``path`` into ``model`` (same structure); a pose-only
+    start of a model with identity inputs gives those inputs zero weights, so the model starts as
+    the same function. Returns the loaded weights."""
+    init = Correctives.load(path)
+    with torch.no_grad():
+        for name, param in model.named_parameters():
+            src = getattr(init, name)
+            pose_only = name == "w1" and src.shape[:2] == param.shape[:2]
+            if pose_only and model.num_shape and src.shape[2] + model.num_shape == param.shape[2]:
+                param.zero_()[..., : src.shape[2]] = src
+            elif src.shape != param.shape:
+                raise SystemExit(
+                    f"--init: {path} has {name} of shape {tuple(src.shape)}, expected {tuple(param.shape)}"
+                )
+            else:
+                param.copy_(src)
+    return init
+
+
+def _shape_inputs(model: Correctives, layer: BodyLayer, chunks: list[dict], held: int) -> torch.Tensor:
+    """(N samples, S + 1) the model's identity inputs of every sample of the chunks; first sets the
+    model's feature statistics from the training chunks (all but the last ``held``)."""
+    with torch.no_grad():
+        raw = []
+        for c in chunks:
+            p = layer.prepare_identity(c["coeffs"][None].to(layer.tpose_orient.dtype))
+            raw.append(model.shape_features(p.rest_vertices, p.rest_joints))
+        raw = torch.cat(raw)  # statistics 0 / 1: the raw features
+        model.shape_mean.copy_(raw[:-held].mean(0))
+        model.shape_std.copy_(raw[:-held].std(0))
+        feats = (raw - model.shape_mean) / model.shape_std
+    return torch.repeat_interleave(feats, torch.tensor([len(c["rel"]) for c in chunks]), 0)
 
 
 def _validate(
@@ -173,12 +230,13 @@ def _validate(
     blend: torch.Tensor | None = None,
     posed: float = 0.0,
     volume: tuple[float, dict, torch.Tensor] | None = None,
+    shape: torch.Tensor | None = None,
 ) -> dict:
     """Held-out score (mm): mean error, plus ``sqrt(ew)`` x the mean error of the edge differences
     when the edge loss is on (the training objective's terms), rest-space and posed (``blend``
     (N, U, 3, 3) applied) mixed by ``posed`` as the loss mixes them, plus ``1e3 sqrt(vw x the
-    volume loss)`` with ``volume = (vw, segment data, the held-out samples' ids in it)``; the best
-    state so far."""
+    volume loss)`` with ``volume = (vw, segment data, the held-out samples' ids in it)``; ``shape``:
+    the samples' identity inputs (a model built with them); the best state so far."""
 
     def score(err: torch.Tensor) -> float:
         mm = float(err.norm(dim=-1).mean()) * 1e3
@@ -187,7 +245,7 @@ def _validate(
         return mm
 
     with torch.no_grad():
-        pred = model.union_displacements(rel, size)
+        pred = model.union_displacements(rel, size, shape)
         err = pred - d
         mm = (1 - posed) * score(err) if posed < 1 else 0.0
         if posed:
@@ -332,6 +390,12 @@ def _segment_data(chunks: list[dict], union: torch.Tensor, data: Path, target: s
     return {**out, **cached}
 
 
+def _only_segments(seg: dict, names: list[str]) -> dict:
+    """:func:`_segment_data` restricted to the segments ``names`` (joint names of :data:`SEGMENTS`)."""
+    keep = [k for k, (joint, _) in enumerate(SEGMENTS) if joint in names]
+    return {**seg, "faces": [seg["faces"][k] for k in keep], "apex": seg["apex"][:, keep], "rest": seg["rest"][:, keep]}
+
+
 def _volume_loss(seg: dict, idx: torch.Tensor, moved: torch.Tensor) -> torch.Tensor:
     """Mean squared relative change of the segments' volumes of samples ``idx`` when the union
     vertices move by ``moved`` (B, U, 3) on the posed mesh."""
@@ -385,15 +449,21 @@ def train(args: argparse.Namespace, command: str) -> None:
             f"{motions}: unibody convert ../shared/motions/cmu/bvh ../shared/motions/cmu/asfamc --to motion "
             f"--out {motions} (the 183 CMU training motions; no evaluation data)"
         )
-    model = build_model(layer, setup, size_ref, meta, args.hidden)
+    model = build_model(layer, setup, size_ref, meta, args.hidden, shape=args.shape)
     if not torch.equal(model.union, setup.union):
         raise SystemExit("internal: the model's vertex union differs from the teacher's")
     _freeze_fingers(model, rel)
+    shp = v_shp = None
+    if args.shape:
+        shp = _shape_inputs(model, layer, chunks, held)
+        shp, v_shp = shp[: len(rel)], shp[len(rel) :]
+        model.meta["shape_inputs"] = (
+            "every activation also reads the identity's build: per limb segment log(mean distance of its "
+            "vertices to the bone line / bone length), and log(size / size_ref), standardised over the "
+            "training identities"
+        )
     if args.init:
-        init = Correctives.load(args.init)
-        with torch.no_grad():
-            for name, param in model.named_parameters():
-                param.copy_(getattr(init, name))
+        init = _load_init(model, args.init)
         model.meta["init"] = f"{args.init} ({init.meta.get('command', '')})"
     if args.small_weight:
         model.meta["small_pose_loss"] = (
@@ -414,11 +484,11 @@ def train(args: argparse.Namespace, command: str) -> None:
         blend, v_blend = blend[:ntrain], blend[ntrain:]
     v_volume = None
     if vw:
-        seg = _segment_data(chunks, setup.union, data, args.target)
+        seg = _only_segments(_segment_data(chunks, setup.union, data, args.target), args.volume_segments)
         v_volume = (vw, seg, torch.arange(ntrain, ntrain + len(v_rel)))
         model.meta["volume_loss"] = (
             f"{vw:g} x the mean squared relative change of the limb segments' volumes (the benchmark's cone "
-            "volumes) on the posed training meshes"
+            f"volumes) on the posed training meshes; segments: {', '.join(args.volume_segments)}"
         )
     if pw:
         model.meta["posed_loss"] = (
@@ -437,7 +507,7 @@ def train(args: argparse.Namespace, command: str) -> None:
         print(f"resumed at step {step}, {elapsed / 60:.1f} min")
     budget = args.minutes * 60
     if best["state"] is None:  # the starting point (an --init) competes too
-        best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw, v_volume)
+        best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw, v_volume, v_shp)
     gen = torch.Generator().manual_seed(args.seed + step)
     n = len(rel)
     target = d / (size / size_ref)[:, None, None]
@@ -454,7 +524,7 @@ def train(args: argparse.Namespace, command: str) -> None:
         for g in opt.param_groups:  # cosine decay over the time budget
             g["lr"] = args.lr * 0.5 * (1 + math.cos(math.pi * min(elapsed / budget, 1.0)))
         idx = torch.randint(n, (args.batch,), generator=gen)
-        pred = model.union_displacements(rel[idx], size_ref * torch.ones(1))
+        pred = model.union_displacements(rel[idx], size_ref * torch.ones(1), None if shp is None else shp[idx])
         err = pred - target[idx]
         loss = (1 - pw) * fit(err) if pw < 1 else 0.0
         if pw or vw:  # on the posed mesh, at the samples' real size
@@ -466,7 +536,7 @@ def train(args: argparse.Namespace, command: str) -> None:
         if args.small_weight:  # small poses: no displacement (LBS is fine there)
             axis = torch.nn.functional.normalize(torch.randn(args.batch, 77, 3, generator=gen), dim=-1)
             small = axis_angle_to_matrix(axis * 0.2 * torch.rand(args.batch, 77, 1, generator=gen))
-            still = model.union_displacements(small, size_ref * torch.ones(1))
+            still = model.union_displacements(small, size_ref * torch.ones(1), None if shp is None else shp[idx])
             loss = loss + args.small_weight * still.square().sum(-1).mean()
         opt.zero_grad()
         loss.backward()
@@ -479,7 +549,7 @@ def train(args: argparse.Namespace, command: str) -> None:
         if (
             time.perf_counter() - last > args.validate_every
         ):  # checkpoint, and keep the best model on the held-out identities
-            best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw, v_volume)
+            best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw, v_volume, v_shp)
             torch.save(
                 {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed, "best": best},
                 ckpt,
@@ -487,13 +557,13 @@ def train(args: argparse.Namespace, command: str) -> None:
             bar.write(f"step {step}: held-out score {best['last']:.3f} mm (best {best['mm']:.3f} mm)")
             last = time.perf_counter()
     bar.close()
-    best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw, v_volume)
+    best = _validate(model, v_rel, v_size, v_d, best, edges, args.edge_weight, v_blend, pw, v_volume, v_shp)
     torch.save(
         {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed, "best": best}, ckpt
     )
     model.load_state_dict(best["state"])
     with torch.no_grad():
-        err = (model.union_displacements(v_rel, v_size) - v_d).norm(dim=-1)
+        err = (model.union_displacements(v_rel, v_size, v_shp) - v_d).norm(dim=-1)
     model.meta.update(
         {
             "steps": step,
@@ -565,6 +635,11 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--weight-decay", type=float, default=0.01)
     parser.add_argument("--hidden", type=int, default=64)
+    parser.add_argument(
+        "--shape",
+        action="store_true",
+        help="train: every activation also reads the identity's build (limb girths over lengths, size)",
+    )
     parser.add_argument("--validate-every", type=float, default=120.0, help="seconds between checkpoints")
     parser.add_argument(
         "--edge-weight",
@@ -586,7 +661,16 @@ def main() -> None:
         help="weight of a loss on the limb segments' volume change on the posed training meshes (the teacher "
         "keeps them at rest volume; segment data computed once and cached under --data)",
     )
-    parser.add_argument("--init", default=None, help="start from these weights (a fine-tune; same structure)")
+    parser.add_argument(
+        "--volume-segments",
+        default=",".join(joint for joint, _ in SEGMENTS),
+        help="comma-separated limb segments (their joints' names) the volume loss sees (default: all eight)",
+    )
+    parser.add_argument(
+        "--init",
+        default=None,
+        help="start from these weights (a fine-tune; same structure, or a pose-only model under --shape)",
+    )
     parser.add_argument(
         "--small-weight",
         type=float,
@@ -601,6 +685,11 @@ def main() -> None:
         parser.error(f"--posed-weight: expected a number in [0, 1], got {args.posed_weight}")
     if args.volume_weight < 0:
         parser.error(f"--volume-weight: expected >= 0, got {args.volume_weight}")
+    args.volume_segments = [n for n in args.volume_segments.split(",") if n]
+    known = [joint for joint, _ in SEGMENTS]
+    if not args.volume_segments or any(n not in known for n in args.volume_segments):
+        parser.error(f"--volume-segments: expected a comma-separated subset of {','.join(known)}, got "
+                     f"{','.join(args.volume_segments) or 'nothing'}")  # fmt: skip
     if args.edge_weight < 0:
         parser.error(f"--edge-weight: expected >= 0, got {args.edge_weight}")
     if args.init and not Path(args.init).is_file():

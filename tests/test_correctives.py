@@ -20,12 +20,18 @@ from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.rig import JOINT_NAMES
 
 
-def _chain_model(rig, seed: int = 0) -> Correctives:
-    """A random model on the 5-joint chain rig: joints 2..4 active, each over the vertices it skins."""
+def _chain_model(rig, seed: int = 0, shape: bool = False) -> Correctives:
+    """A random model on the 5-joint chain rig: joints 2..4 active, each over the vertices it skins;
+    with ``shape``, also reading the build of the segments 2-3 and 3-4 (raw features: statistics 0 / 1)."""
     w = rig.dense_skinning_weights()
     inputs = torch.tensor([[2, 3, -1], [3, 2, 4], [4, 3, -1]])
     verts = [torch.nonzero(w[:, k] > 0.05).flatten() for k in (2, 3, 4)]
-    model = Correctives(inputs, verts, rig.num_vertices, hidden=8, channels=4, bones=((1, 2), (2, 3)))
+    spec = None
+    if shape:
+        dominant = w.argmax(1)
+        segs = [torch.nonzero(dominant == k).flatten() for k in (2, 3)]
+        spec = {"joints": [(2, 3), (3, 4)], "vertices": segs, "mean": torch.zeros(3), "std": torch.ones(3)}
+    model = Correctives(inputs, verts, rig.num_vertices, hidden=8, channels=4, bones=((1, 2), (2, 3)), shape=spec)
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for p in model.parameters():
@@ -163,6 +169,62 @@ def test_with_procedural_twist(pca):
     assert (twist.pose(prepared, poses).vertices - ref).abs().max() < 1e-5
 
 
+def test_shape_features_of_a_tube(chain):
+    """The chain's tube (radius 5 cm about the Y axis, where its joints lie): each segment's girth
+    over length is exactly 0.05 m over the bone's length, the size the mean of bones 1-2 and 2-3;
+    a rigid move leaves the features alone, a uniform scale s moves only the size's (by log s), a
+    radial thickening k only the girths' (by log k)."""
+    rig, _, prepared = chain
+    model = _chain_model(rig, shape=True).double()
+    v, j = prepared.rest_vertices, prepared.rest_joints
+    f = model.shape_features(v, j)
+    bone = lambda a, b: float((j[0, b] - j[0, a]).norm())  # noqa: E731
+    f64 = lambda *x: torch.tensor(x, dtype=torch.float64)  # noqa: E731
+    ref = f64(math.log(0.05 / bone(2, 3)), math.log(0.05 / bone(3, 4)), math.log(model.size_of(j)))
+    assert (f - ref).abs().max() < 1e-9
+    rot = axis_angle_to_matrix(torch.tensor([0.3, -1.1, 0.7], dtype=torch.float64))
+    shift = torch.tensor([0.5, -2.0, 1.0], dtype=torch.float64)
+    assert (model.shape_features(v @ rot.T + shift, j @ rot.T + shift) - f).abs().max() < 1e-9
+    assert (model.shape_features(1.7 * v, 1.7 * j) - f - f64(0, 0, math.log(1.7))).abs().max() < 1e-9
+    thick = v * torch.tensor([1.3, 1.0, 1.3], dtype=torch.float64)  # the bones lie on the Y axis
+    assert (model.shape_features(thick, j) - f - f64(math.log(1.3), math.log(1.3), 0)).abs().max() < 1e-9
+    assert _chain_model(rig).shape_features(v, j) is None  # a pose-only model has none
+
+
+def test_shape_model_on_a_layer(chain, tmp_path):
+    """A model with identity inputs: still exactly 0 at the rest pose, equal to LBS of the rest mesh
+    plus f(theta, shape), differentiable in the pose, the rest mesh and the rest joints (float64),
+    kept by its state; without the shape it says what to pass."""
+    rig, _, prepared = chain
+    model = _chain_model(rig, seed=5, shape=True)
+    layer = BodyLayer(rig, correctives=model).double()
+    p = prepared
+    rot = p.rest_rotations[0]
+    rest_local = (rot[layer.parents[1:]].transpose(-1, -2) @ rot[1:])[None]
+    on = layer.pose(p, rest_local, absolute=True).vertices
+    assert (on - layer.pose(p, rest_local, absolute=True, correctives=False).vertices).abs().max() < 1e-12
+    pose = 0.8 * torch.randn(3, 4, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    corr = layer.correctives
+    rel = corr.rest_relative(layer.local_rotations(pose), p.rest_rotations, layer.parents)
+    shape = corr.shape_features(p.rest_vertices, p.rest_joints)
+    d = corr(rel, corr.size_of(p.rest_joints), shape)
+    assert d.abs().max() > 1e-3
+    shifted = PreparedIdentity(p.rest_vertices + d, *(t.expand(3, *t.shape[1:]) for t in vars_(p)[1:]))
+    assert (layer.pose(p, pose).vertices - layer.pose(shifted, pose, correctives=False).vertices).abs().max() < 1e-12
+    with pytest.raises(ValueError, match="shape: this correctives model reads the identity's build"):
+        corr(rel, corr.size_of(p.rest_joints))
+    x = (0.7 * torch.randn(2, 4, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)).requires_grad_()
+    r, jt = p.rest_vertices.clone().requires_grad_(), p.rest_joints.clone().requires_grad_()
+
+    def f(x, r, jt):
+        return layer.pose(PreparedIdentity(r, p.rest_rotations, jt, p.offsets), x).vertices
+
+    assert torch.autograd.gradcheck(f, (x, r, jt), fast_mode=True)
+    torch.save(model.state(), tmp_path / "w.pt")
+    back = Correctives.load(tmp_path / "w.pt").double()
+    assert back.num_shape == 3 and torch.equal(back(rel, corr.size_of(p.rest_joints), shape), d)
+
+
 def test_bad_arguments(chain, tmp_path):
     rig, layer, prepared = chain
     plain = BodyLayer(rig).double()
@@ -231,6 +293,49 @@ def test_train_script_blends_rebuild_the_poses_of_a_chunk(pca, setup, tmp_path):
         assert torch.equal(tc._blends([chunk], u, tmp_path, target), blend)  # the cache
 
 
+def test_train_script_starts_a_shape_model_as_its_pose_only_init(pca, setup, tmp_path):
+    """--shape --init POSE_ONLY: the identity inputs start at zero weight, so the new model is the
+    same function of the pose for every identity; statistics come from the training identities."""
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
+    spec = importlib.util.spec_from_file_location("train_correctives", script)
+    tc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tc)
+    layer, _ = pca
+    pose_only = tc.build_model(layer, setup, 0.3, {}, 16)
+    gen = torch.Generator().manual_seed(2)
+    with torch.no_grad():
+        for p in pose_only.parameters():
+            p.copy_(0.2 * torch.randn(p.shape, generator=gen))
+    torch.save(pose_only.state(), tmp_path / "pose_only.pt")
+    init = Correctives.load(tmp_path / "pose_only.pt")
+    model = tc.build_model(layer, setup, 0.3, {}, 16, shape=True)
+    assert model.num_shape == 9 and init.num_shape == 0
+    tc._load_init(model, str(tmp_path / "pose_only.pt"))
+    gen = torch.Generator().manual_seed(3)
+    chunks = [
+        {"coeffs": torch.randn(layer.identity.num_params, generator=gen), "rel": torch.zeros(2, 77, 3, 3)}
+        for _ in range(4)
+    ]
+    shp = tc._shape_inputs(model, layer, chunks, held=1)
+    assert shp.shape == (8, 9) and torch.isfinite(shp).all()
+    assert shp[:6:2].mean(0).abs().max() < 1e-5  # standardised over the 3 training identities
+    rel = axis_angle_to_matrix(0.5 * torch.randn(8, 77, 3, generator=gen))
+    size = 0.3 * torch.ones(1)
+    with torch.no_grad():
+        assert (model.union_displacements(rel, size, shp) - init.union_displacements(rel, size)).abs().max() < 1e-6
+    bad = tmp_path / "bad.pt"
+    state = init.state()
+    for k, sl in (("w1", (slice(None), slice(0, 8))), ("b1", (slice(None), slice(0, 8))), ("w2", (..., slice(0, 8)))):
+        state["params"][k] = state["params"][k][sl]  # a consistent model of hidden width 8
+    state["hidden"] = 8
+    torch.save(state, bad)
+    with pytest.raises(SystemExit, match="--init: .*bad.pt has w1 of shape"):
+        tc._load_init(model, str(bad))
+
+
 @pytest.mark.parametrize("shard", ["2/2", "a/b", "-1/2"])
 def test_train_script_rejects_a_bad_shard(shard):
     """generate --shard K/N: one line naming the argument, exit status 2, no traceback."""
@@ -267,10 +372,16 @@ def test_train_script_volume_loss_sees_what_the_teacher_keeps(pca, setup, tmp_pa
     assert teacher.item() < 0.05 * lbs.item() and lbs.item() > 1e-3  # rms change: LBS > 3 %
     teacher.backward()
     assert moved.grad.abs().sum() > 0
+    # --volume-segments: the loss over all eight is the mean of the one-segment losses
+    from unibody.correctives.metrics import SEGMENTS
+
+    each = [tc._volume_loss(tc._only_segments(seg, [j]), idx, 0 * moved).item() for j, _ in SEGMENTS]
+    assert abs(sum(each) / len(each) - lbs.item()) < 1e-6 * lbs.item() and len(set(each)) == len(each)
 
 
 @pytest.mark.parametrize(
-    ("option", "weight"), [("--posed-weight", "1.5"), ("--posed-weight", "-0.1"), ("--volume-weight", "-1")]
+    ("option", "weight"),
+    [("--posed-weight", "1.5"), ("--posed-weight", "-0.1"), ("--volume-weight", "-1"), ("--volume-segments", "Arm")],
 )
 def test_train_script_rejects_a_bad_loss_weight(option, weight):
     """train --posed-weight W (W in [0, 1]) and --volume-weight V (V >= 0): else one line naming
@@ -472,5 +583,6 @@ def test_shipped_weights_ignore_the_fingers(procedural):
     bent = rel.clone()
     bent[:, fingers] = axis_angle_to_matrix(torch.randn(2, len(fingers), 3, generator=gen))
     size = model.size_ref[None]
-    assert torch.equal(model.union_displacements(rel, size), model.union_displacements(bent, size))
-    assert model.union_displacements(torch.eye(3).expand(1, 77, 3, 3), size).abs().max() == 0
+    shape = torch.zeros(1, model.num_shape) if model.num_shape else None  # the training identities' mean build
+    assert torch.equal(model.union_displacements(rel, size, shape), model.union_displacements(bent, size, shape))
+    assert model.union_displacements(torch.eye(3).expand(1, 77, 3, 3), size, shape).abs().max() == 0

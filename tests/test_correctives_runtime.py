@@ -56,6 +56,35 @@ def test_no_cache_while_training():
     assert live.abs().sum() > 0
 
 
+def test_shape_inputs_are_kept_for_the_same_rest_tensors_only():
+    """Posing one prepared identity again reuses its shape inputs; another identity (even at a
+    freed one's address), an in-place edit or a rest mesh needing gradients gets its own."""
+    rig = chain_rig()
+    w = rig.dense_skinning_weights().argmax(1)
+    spec = {
+        "joints": [(2, 3)],
+        "vertices": [torch.nonzero(w == 2).flatten()],
+        "mean": torch.zeros(2),
+        "std": torch.ones(2),
+    }
+    verts = [torch.nonzero(rig.dense_skinning_weights()[:, k] > 0.05).flatten() for k in (2, 3, 4)]
+    model = Correctives(_model().inputs, verts, rig.num_vertices, hidden=8, channels=4, bones=((1, 2),), shape=spec)
+    v, j = rig.bind_vertices[None].float(), rig.bind_transforms[None, :, :3, 3].float()
+    first = model.shape_inputs(v, j)
+    assert model.shape_inputs(v, j) is first and torch.equal(first, model.shape_features(v, j))
+    v2 = v.clone()
+    v2.mul_(1.5)  # another identity
+    assert torch.equal(model.shape_inputs(v2, j), model.shape_features(v2, j))
+    v2.mul_(2.0)  # edited in place
+    assert torch.equal(model.shape_inputs(v2, j), model.shape_features(v2, j))
+    del v2
+    v3 = v * 3.0  # may land at the freed tensor's address
+    assert torch.equal(model.shape_inputs(v3, j), model.shape_features(v3, j))
+    r = v.clone().requires_grad_(True)
+    model.shape_inputs(r, j).sum().backward()
+    assert r.grad is not None and r.grad.abs().sum() > 0
+
+
 def test_one_model_serves_a_plain_and_a_twist_layer():
     """Each layer keeps its own skinning binding: building the twist layer leaves the plain one right."""
     import numpy as np

@@ -605,7 +605,12 @@ class BodyLayer(nn.Module):
             if corr is not None:  # LBS of the shared rest mesh, plus the skinned displacements
                 rel = corr.rest_relative(local, p.rest_rotations, self.parents, corr.needed)
                 vertices = corr.posed(
-                    vertices, rel, mats.permute(1, 3, 2, 0), corr.size_of(p.rest_joints), self._corr_binding()
+                    vertices,
+                    rel,
+                    mats.permute(1, 3, 2, 0),
+                    corr.size_of(p.rest_joints),
+                    self._corr_binding(),
+                    corr.shape_inputs(p.rest_vertices, p.rest_joints),
                 )
             world = homogeneous(g_rot, g_pos)
         else:
@@ -619,7 +624,8 @@ class BodyLayer(nn.Module):
             vertices = self._skin(p, mats)
             if corr is not None:
                 rel = corr.world_relative(world, p.rest_rotations, self.parents)
-                vertices = corr.posed(vertices, rel, mats, corr.size_of(p.rest_joints), self._corr_binding())
+                shape = corr.shape_inputs(p.rest_vertices, p.rest_joints)
+                vertices = corr.posed(vertices, rel, mats, corr.size_of(p.rest_joints), self._corr_binding(), shape)
         if check and b:
             self._check_overflow(world, vertices, mats, p.rest_vertices)
         return BodyOutput(vertices, world[..., :3, 3], world, p.rest_vertices.expand(b, -1, -1))
