@@ -128,7 +128,9 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--png", default=None)
     parser.add_argument(
-        "--sections", default="quality small speed inversion", help="any of: quality small speed inversion"
+        "--sections",
+        default="quality small backends speed inversion",
+        help="any of: quality small backends speed inversion",
     )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -146,6 +148,8 @@ def main() -> None:
     if "small" in args.sections:
         for tag, lay in (("plain rig", layer), ("twist rig", twist)):
             small(lay, tag, args)
+    if "backends" in args.sections:
+        backends(model, args)
     if "speed" in args.sections:
         prepared = layer.prepare_identity(torch.zeros(1, layer.identity.num_params))
         poses, _ = stress_poses(keyed_generator("correctives-stress", args.seed))
@@ -192,6 +196,30 @@ def small(layer: BodyLayer, tag: str, args: argparse.Namespace) -> None:
                          for i, k in enumerate(kinds))  # fmt: skip
         print(f"T-pose segment volumes / rest over {len(v)} identities, {tag}, {'with' if on else 'without'} "
               f"correctives: {text}")  # fmt: skip
+
+
+def backends(model: Correctives, args: argparse.Namespace, n: int = 8) -> None:
+    """Limb volumes at the T-pose on bodies of another backend (Anny: seeded phenotypes, uniform in
+    [0, 1]), whose rest poses the native-PCA training identities do not share; left and right apart."""
+    plain = BodyLayer.from_anny()
+    layer = BodyLayer.from_anny(correctives=model)
+    measures = SurfaceMeasures.from_layer(plain)
+    phen = torch.rand(n, plain.identity.num_params, generator=keyed_generator("correctives-anny", args.seed))
+    vols = {False: [], True: []}
+    for c in phen:
+        p = plain.prepare_identity(c[None])
+        for on, lay in ((False, plain), (True, layer)):
+            out = lay.pose(p, torch.zeros(1, 77, 3))
+            vols[on].append(measures.segment_volumes(p.rest_vertices, p.rest_rotations, p.rest_joints, out.vertices,
+                                                     out.transforms)[0])  # fmt: skip
+    for on, rows in vols.items():
+        v = torch.stack(rows)
+        text = ", ".join(
+            f"{name} {float(v[:, k].min()):.0%}-{float(v[:, k].max()):.0%}" for k, (name, _) in enumerate(SEGMENTS)
+        )
+        print(
+            f"Anny T-pose segment volumes / rest over {n} phenotypes, {'with' if on else 'without'} correctives: {text}"
+        )
 
 
 def inversion(layer: BodyLayer, args: argparse.Namespace) -> None:
