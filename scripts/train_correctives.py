@@ -24,6 +24,7 @@ Two resumable stages, both on one thread by default:
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import shlex
 import sys
@@ -106,13 +107,18 @@ def motion_frames(
 def generate(args: argparse.Namespace) -> None:
     data = Path(args.data)
     data.mkdir(parents=True, exist_ok=True)
-    layer = BodyLayer.from_pca()
+    layer = _backend_layer(args.backend, torch.float32)
     setup = TeacherSetup(layer, volume=args.volume, contact=args.contact)
-    coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-identities", args.seed))
+    if args.backend == "anny":  # phenotypes uniform in [0, 1]: babies to the elderly, every build
+        gen = keyed_generator("correctives-identities-anny", args.seed)
+        coeffs = torch.rand(args.identities, layer.identity.num_params, generator=gen)
+    else:
+        coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-identities", args.seed))
+    name = "chunk_anny_{:05d}" if args.backend == "anny" else "chunk_{:05d}"
     motions = load_motions(Path(args.motions)) if args.motions else []
     k = round(args.poses * args.motion_share) if motions else 0
     part, parts = args.shard
-    todo = [i for i in range(part, args.identities, parts) if not (data / f"chunk_{i:05d}.pt").exists()]
+    todo = [i for i in range(part, args.identities, parts) if not (data / f"{name.format(i)}.pt").exists()]
     print(f"teacher region: {len(setup.union)} vertices; {len(todo)} of {args.identities} identities to do; "
           f"{k} of {args.poses} poses from {len(motions)} motions")  # fmt: skip
     for i in tqdm(todo, desc="teacher", unit="identity", smoothing=0.1):
@@ -129,6 +135,7 @@ def generate(args: argparse.Namespace) -> None:
             "d_twist": d_twist.float(),
             "size": size_of(prepared.rest_joints).float(),
             "coeffs": coeffs[i],
+            "backend": args.backend,
             "sources": ["draw_poses"] * (args.poses - k) + sources,
             "recipe": {
                 "seed": args.seed,
@@ -140,9 +147,9 @@ def generate(args: argparse.Namespace) -> None:
                 "motion_frames": sum(len(p) for _, p in motions),
             },
         }
-        tmp = data / f"chunk_{i:05d}.tmp"
+        tmp = data / f"{name.format(i)}.tmp"
         torch.save(chunk, tmp)
-        tmp.rename(data / f"chunk_{i:05d}.pt")
+        tmp.rename(data / f"{name.format(i)}.pt")
 
 
 def build_model(
@@ -210,7 +217,7 @@ def _shape_inputs(model: Correctives, layer: BodyLayer, chunks: list[dict], held
     with torch.no_grad():
         raw = []
         for c in chunks:
-            p = layer.prepare_identity(c["coeffs"][None].to(layer.tpose_orient.dtype))
+            p = _prepare(c, layer.tpose_orient.dtype)
             raw.append(model.shape_features(p.rest_vertices, p.rest_joints))
         raw = torch.cat(raw)  # statistics 0 / 1: the raw features
         model.shape_mean.copy_(raw[:-held].mean(0))
@@ -284,9 +291,17 @@ def _recipe(chunks: list[dict], held: int, seed: int, target: str) -> str:
             "3 rounds x 4 iterations; teacher.Contact)"
         )
     rig = "the procedural-twist rig (LBS + twist joints)" if target == "twist" else "plain LBS"
+    anny = [c for c in chunks if c.get("backend") == "anny"]
+    who = f"{len(chunks) - len(anny)} native-PCA identities (16 components N(0,1), stature U(1.0, 1.95) m, "
+    who += f"keyed_generator('correctives-identities', {seed}))"
+    if anny:
+        aseed = anny[0].get("recipe", {}).get("seed", seed)
+        who += (
+            f" + {len(anny)} Anny identities (phenotypes U(0, 1), keyed_generator('correctives-identities-anny', "
+            f"{aseed}); their poses keyed by that seed)"
+        )
     return (
-        f"{len(chunks)} native-PCA identities (16 components N(0,1), stature U(1.0, 1.95) m, "
-        f"keyed_generator('correctives-identities', {seed})) x {len(chunks[0]['rel'])} poses each, in all "
+        f"{who} x {len(chunks[0]['rel'])} poses each, in all "
         f"{len(sources) - len(used)} from draw_poses (sample_poses with bend 0.3, chamber 0.1, fold 0.15 + "
         f"randomised stress families; keyed_generator('correctives-poses', {seed}, i)){motions}; teacher: "
         f"spokes-and-rims ARAP, {recipe['iterations']} iterations from LBS + procedural twist{volume}, joint "
@@ -310,9 +325,23 @@ def _chunks_key(chunks: list[dict]) -> list[float]:
     return [float(c["rel"].double().sum()) for c in chunks] + [float(c["coeffs"].double().sum()) for c in chunks]
 
 
+@functools.cache
+def _backend_layer(backend: str, dtype: torch.dtype) -> BodyLayer:
+    """The identity backend whose coefficients a chunk holds (``pca`` or ``anny``), in ``dtype``.
+    Every backend prepares identities on the canonical topology and rig, so any layer poses them."""
+    layer = BodyLayer.from_anny() if backend == "anny" else BodyLayer.from_pca()
+    return layer.to(dtype)
+
+
+def _prepare(chunk: dict, dtype: torch.dtype):  # noqa: ANN202 (a PreparedIdentity)
+    """A chunk's identity, prepared by its own backend (``chunk["backend"]``, native PCA by default)."""
+    return _backend_layer(chunk.get("backend", "pca"), dtype).prepare_identity(chunk["coeffs"][None].to(dtype))
+
+
 def _chunk_pose(layer: BodyLayer, chunk: dict) -> tuple:
-    """A chunk's identity, prepared by ``layer`` (float64), and its absolute local rotations (B, 77, 3, 3)."""
-    p = layer.prepare_identity(chunk["coeffs"][None].double())
+    """A chunk's identity, prepared by its backend (float64), and its absolute local rotations
+    (B, 77, 3, 3) on ``layer``'s rig."""
+    p = _prepare(chunk, torch.float64)
     rr = p.rest_rotations[0]
     rest_local = rr[layer.parents[1:]].transpose(-1, -2) @ rr[1:]
     return p, rest_local @ chunk["rel"].double()  # rel = rest_local^T local
@@ -422,7 +451,15 @@ def train(args: argparse.Namespace, command: str) -> None:
     chunks = [torch.load(f, weights_only=True) for f in files]
     if key not in chunks[0]:
         raise SystemExit(f"--target {args.target}: the chunks in {data} have no {key!r} (made by an older generate)")
-    held = max(1, len(chunks) // 20)  # the last 5 % of the identities: validation only
+    # The last 5 % of each backend's identities: validation only (ordered train, then held out)
+    groups: dict[str, list[dict]] = {}
+    for c in chunks:
+        groups.setdefault(c.get("backend", "pca"), []).append(c)
+    cut = {b: max(1, len(cs) // 20) for b, cs in groups.items()}
+    chunks = [c for b, cs in groups.items() for c in cs[: -cut[b]]] + [
+        c for b, cs in groups.items() for c in cs[-cut[b] :]
+    ]
+    held = sum(cut.values())
     rel = torch.cat([c["rel"] for c in chunks[:-held]])
     size = torch.cat([c["size"].expand(len(c["rel"])) for c in chunks[:-held]])
     d = torch.cat([c[key] for c in chunks[:-held]])
@@ -602,6 +639,12 @@ def main() -> None:
     parser.add_argument("--data", default=str(Path.home() / ".cache" / "unibody" / "correctives-teacher"))
     parser.add_argument("--seed", type=int, default=40)
     parser.add_argument("--identities", type=int, default=160)
+    parser.add_argument(
+        "--backend",
+        choices=("pca", "anny"),
+        default="pca",
+        help="generate: the identities' backend (native PCA, or Anny phenotypes: another rest pose)",
+    )
     parser.add_argument("--poses", type=int, default=16)
     parser.add_argument("--minutes", type=float, default=25.0)
     parser.add_argument("--resume", action="store_true")

@@ -336,6 +336,30 @@ def test_train_script_starts_a_shape_model_as_its_pose_only_init(pca, setup, tmp
         tc._load_init(model, str(bad))
 
 
+def test_train_script_prepares_each_chunk_with_its_backend():
+    """A chunk of Anny phenotypes (generate --backend anny) is prepared by Anny, a chunk without a
+    backend by the native PCA; either is posed on the canonical rig: the identity rotations
+    relative to its rest pose give its rest mesh back (up to where the root is placed)."""
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
+    spec = importlib.util.spec_from_file_location("train_correctives", script)
+    tc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tc)
+    anny = BodyLayer.from_anny().double()
+    pca = BodyLayer.from_pca().double()
+    phen = torch.rand(anny.identity.num_params, generator=torch.Generator().manual_seed(6))
+    for layer, chunk in (
+        (anny, {"coeffs": phen, "backend": "anny", "rel": torch.eye(3).expand(2, 77, 3, 3)}),
+        (pca, {"coeffs": torch.zeros(pca.identity.num_params), "rel": torch.eye(3).expand(2, 77, 3, 3)}),
+    ):
+        p, local = tc._chunk_pose(pca, chunk)
+        assert torch.equal(p.rest_vertices, layer.prepare_identity(chunk["coeffs"][None].double()).rest_vertices)
+        moved = pca.pose(p, local, absolute=True, correctives=False).vertices - p.rest_vertices
+        assert (moved - moved.mean(1, keepdim=True)).abs().max() < 1e-6  # the rest mesh, moved as a whole
+
+
 @pytest.mark.parametrize("shard", ["2/2", "a/b", "-1/2"])
 def test_train_script_rejects_a_bad_shard(shard):
     """generate --shard K/N: one line naming the argument, exit status 2, no traceback."""
