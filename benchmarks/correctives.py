@@ -181,16 +181,8 @@ def small(layer: BodyLayer, tag: str, args: argparse.Namespace) -> None:
         print(f"small poses, {tag} (every joint within 0.2 rad of the {where}): change mean {change.mean():.3f} mm "
               f"(per mesh max {change.mean(-1).max():.3f} mm), largest vertex {change.max():.2f} mm")  # fmt: skip
     # How the limbs' volumes at the T-pose vary with the body (the teacher keeps each at 100 %)
-    measures = SurfaceMeasures.from_layer(layer)
-    vols = {False: [], True: []}
-    for c in coeffs:
-        p = layer.prepare_identity(c[None])
-        for on in vols:
-            out = layer.pose(p, torch.zeros(1, 77, 3), correctives=on)
-            vols[on].append(measures.segment_volumes(p.rest_vertices, p.rest_rotations, p.rest_joints, out.vertices,
-                                                     out.transforms)[0])  # fmt: skip
-    for on, rows in vols.items():
-        v = torch.stack(rows)  # (identities, segments): left Arm, ForeArm, Leg, Shin, then right
+    vols = tpose_volumes(layer, [layer.prepare_identity(c[None]) for c in coeffs])
+    for on, v in vols.items():  # (identities, segments): left Arm, ForeArm, Leg, Shin, then right
         kinds = ("upper arm", "forearm", "thigh", "shin")
         text = ", ".join(f"{k} {float(v[:, [i, i + 4]].min()):.0%}-{float(v[:, [i, i + 4]].max()):.0%}"
                          for i, k in enumerate(kinds))  # fmt: skip
@@ -198,22 +190,24 @@ def small(layer: BodyLayer, tag: str, args: argparse.Namespace) -> None:
               f"correctives: {text}")  # fmt: skip
 
 
+def tpose_volumes(layer: BodyLayer, prepared: list) -> dict[bool, torch.Tensor]:
+    """{with correctives: (identities, segments) volume / rest of :data:`SEGMENTS` at the T-pose}."""
+    measures = SurfaceMeasures.from_layer(layer)
+    vols = {False: [], True: []}
+    for p in prepared:
+        for on in vols:
+            out = layer.pose(p, torch.zeros(1, 77, 3), correctives=on)
+            vols[on].append(measures.segment_volumes(p.rest_vertices, p.rest_rotations, p.rest_joints, out.vertices,
+                                                     out.transforms)[0])  # fmt: skip
+    return {on: torch.stack(rows) for on, rows in vols.items()}
+
+
 def backends(model: Correctives, args: argparse.Namespace, n: int = 8) -> None:
     """Limb volumes at the T-pose on bodies of another backend (Anny: seeded phenotypes, uniform in
     [0, 1]), whose rest poses the native-PCA training identities do not share; left and right apart."""
-    plain = BodyLayer.from_anny()
     layer = BodyLayer.from_anny(correctives=model)
-    measures = SurfaceMeasures.from_layer(plain)
-    phen = torch.rand(n, plain.identity.num_params, generator=keyed_generator("correctives-anny", args.seed))
-    vols = {False: [], True: []}
-    for c in phen:
-        p = plain.prepare_identity(c[None])
-        for on, lay in ((False, plain), (True, layer)):
-            out = lay.pose(p, torch.zeros(1, 77, 3))
-            vols[on].append(measures.segment_volumes(p.rest_vertices, p.rest_rotations, p.rest_joints, out.vertices,
-                                                     out.transforms)[0])  # fmt: skip
-    for on, rows in vols.items():
-        v = torch.stack(rows)
+    phen = torch.rand(n, layer.identity.num_params, generator=keyed_generator("correctives-anny", args.seed))
+    for on, v in tpose_volumes(layer, [layer.prepare_identity(c[None]) for c in phen]).items():
         text = ", ".join(
             f"{name} {float(v[:, k].min()):.0%}-{float(v[:, k].max()):.0%}" for k, (name, _) in enumerate(SEGMENTS)
         )

@@ -169,9 +169,10 @@ def build_model(
     width = max(len(r) for r in rows)
     inputs = torch.tensor([r + [-1] * (width - len(r)) for r in rows])
     spec = None
-    if shape:
-        dominant = layer.skinning.dense().argmax(1)
-        pairs = [(names.index(a), names.index(b)) for a, b in SEGMENTS]
+    if shape:  # the measures' limb segments, each the vertices its joint dominates
+        measures = SurfaceMeasures.from_layer(layer)
+        dominant = torch.from_numpy(measures.weights.argmax(1))
+        pairs = list(measures.segment_joints)
         n = len(pairs) + 1
         spec = {
             "joints": pairs,

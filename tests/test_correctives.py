@@ -213,6 +213,12 @@ def test_shape_model_on_a_layer(chain, tmp_path):
     assert (layer.pose(p, pose).vertices - layer.pose(shifted, pose, correctives=False).vertices).abs().max() < 1e-12
     with pytest.raises(ValueError, match="shape: this correctives model reads the identity's build"):
         corr(rel, corr.size_of(p.rest_joints))
+    with pytest.raises(ValueError, match=r"shape: expected \(B or 1, 3\) shape features, got \(1, 2\)"):
+        corr(rel, corr.size_of(p.rest_joints), shape[:, :2])
+    joints = p.rest_joints.clone()
+    joints[:, 3] = joints[:, 2]  # a limb bone of zero length: 0 / 0
+    with pytest.raises(ValueError, match="prepared: identity 0 gives non-finite correctives shape inputs"):
+        layer.pose(PreparedIdentity(p.rest_vertices, p.rest_rotations, joints, p.offsets), pose)
     x = (0.7 * torch.randn(2, 4, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)).requires_grad_()
     r, jt = p.rest_vertices.clone().requires_grad_(), p.rest_joints.clone().requires_grad_()
 

@@ -200,14 +200,26 @@ class Correctives(nn.Module):
             return None
         live = (rest_vertices, rest_joints, self.shape_mean, self.shape_std)
         if torch.is_grad_enabled() and (rest_vertices.requires_grad or rest_joints.requires_grad):
-            return self.shape_features(rest_vertices, rest_joints)
+            return self._finite(self.shape_features(rest_vertices, rest_joints))
         versions = tuple(t._version for t in live)
         cached = getattr(self, "_shape_cache", None)
         if cached is not None and cached[0]() is rest_vertices and cached[1]() is rest_joints and cached[2] == versions:
             return cached[3]
         with torch.no_grad():
-            feats = self.shape_features(rest_vertices, rest_joints)
+            feats = self._finite(self.shape_features(rest_vertices, rest_joints))
         self._shape_cache = (weakref.ref(rest_vertices), weakref.ref(rest_joints), versions, feats)
+        return feats
+
+    @staticmethod
+    def _finite(feats: torch.Tensor) -> torch.Tensor:
+        """``feats``, or ValueError where a degenerate rest mesh made them non-finite (the posed
+        displacements would be NaN, which the layer's output bound does not see)."""
+        if not bool(torch.isfinite(feats.detach()).all()):
+            bad = int(torch.nonzero(~torch.isfinite(feats.detach()).all(1))[0])
+            raise ValueError(
+                f"prepared: identity {bad} gives non-finite correctives shape inputs (a limb bone of zero "
+                "length, or a limb segment with no girth); expected a rest mesh with real limbs"
+            )
         return feats
 
     def _shape_of(self, shape: torch.Tensor | None) -> torch.Tensor | None:
@@ -216,6 +228,8 @@ class Correctives(nn.Module):
                 "shape: this correctives model reads the identity's build; pass "
                 "shape=model.shape_features(rest_vertices, rest_joints)"
             )
+        if self.num_shape and (shape.ndim != 2 or shape.shape[1] != self.num_shape):
+            raise ValueError(f"shape: expected (B or 1, {self.num_shape}) shape features, got {tuple(shape.shape)}")
         return shape if self.num_shape else None
 
     def features(self, rel: torch.Tensor) -> torch.Tensor:
