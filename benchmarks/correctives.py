@@ -36,6 +36,7 @@ from unibody.correctives.model import Correctives
 from unibody.correctives.stress import forearm_twist_pose, stress_poses
 from unibody.correctives.training import TeacherSetup, draw_identities, teacher_targets
 from unibody.geometry.rotations import axis_angle_to_matrix
+from unibody.symmetry import canonical_mirror_map
 from unibody.synth.poses import keyed_generator
 from unibody.viz.render import Camera, MeshSpec, render_image
 
@@ -129,8 +130,8 @@ def main() -> None:
     parser.add_argument("--png", default=None)
     parser.add_argument(
         "--sections",
-        default="quality small backends speed inversion",
-        help="any of: quality small backends speed inversion",
+        default="quality small mirror backends speed inversion",
+        help="any of: quality small mirror backends speed inversion",
     )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -148,6 +149,9 @@ def main() -> None:
     if "small" in args.sections:
         for tag, lay in (("plain rig", layer), ("twist rig", twist)):
             small(lay, tag, args)
+    if "mirror" in args.sections:
+        for tag, lay in (("plain rig", layer), ("twist rig", twist)):
+            mirrored(lay, tag)
     if "backends" in args.sections:
         backends(model, args)
     if "speed" in args.sections:
@@ -188,6 +192,23 @@ def small(layer: BodyLayer, tag: str, args: argparse.Namespace) -> None:
                          for i, k in enumerate(kinds))  # fmt: skip
         print(f"T-pose segment volumes / rest over {len(v)} identities, {tag}, {'with' if on else 'without'} "
               f"correctives: {text}")  # fmt: skip
+
+
+def mirrored(layer: BodyLayer, tag: str) -> None:
+    """Left/right: on the mean body (mirror-symmetric), each stress family's left pose against the
+    mirror image of its right pose; LBS leaves only the rig's own asymmetry."""
+    prepared = layer.prepare_identity(torch.zeros(1, layer.identity.num_params))
+    poses, labels = stress_poses(keyed_generator("correctives-stress", 0), seeded=0)
+    left = [i for i, n in enumerate(labels) if n.endswith("(left)")]
+    right = [labels.index(labels[i].replace("(left)", "(right)")) for i in left]
+    vmap = canonical_mirror_map().index
+    for on in (False, True):
+        a = layer.pose(prepared, poses[left], correctives=on).vertices
+        b = layer.pose(prepared, poses[right], correctives=on).vertices
+        gap = (a - b[:, vmap] * a.new_tensor([-1.0, 1.0, 1.0])).norm(dim=-1) * 1e3
+        what = "with" if on else "without"
+        print(f"left vs mirrored right, {tag}, mean body, {len(left)} stress families, {what} correctives: "
+              f"mean {gap.mean():.3f} mm, largest {gap.max():.2f} mm")  # fmt: skip
 
 
 def tpose_volumes(layer: BodyLayer, prepared: list) -> dict[bool, torch.Tensor]:

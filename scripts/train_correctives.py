@@ -37,6 +37,7 @@ from tqdm import tqdm
 
 from unibody import BodyLayer
 from unibody.correctives.metrics import SEGMENTS, SurfaceMeasures, cone_volume
+from unibody.correctives.mirror import asymmetry, mirror_maps, symmetrize
 from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES
 from unibody.correctives.training import (
@@ -213,8 +214,9 @@ def _load_init(model: Correctives, path: str) -> Correctives:
 
 
 def _shape_inputs(model: Correctives, layer: BodyLayer, chunks: list[dict], held: int) -> torch.Tensor:
-    """(N samples, S + 1) the model's identity inputs of every sample of the chunks; first sets the
-    model's feature statistics from the training chunks (all but the last ``held``)."""
+    """(N samples, S + 1) the raw identity features of every sample of the chunks (standardise them
+    with the model's statistics); first sets those statistics from the training chunks (all but
+    the last ``held``)."""
     with torch.no_grad():
         raw = []
         for c in chunks:
@@ -223,8 +225,28 @@ def _shape_inputs(model: Correctives, layer: BodyLayer, chunks: list[dict], held
         raw = torch.cat(raw)  # statistics 0 / 1: the raw features
         model.shape_mean.copy_(raw[:-held].mean(0))
         model.shape_std.copy_(raw[:-held].std(0))
-        feats = (raw - model.shape_mean) / model.shape_std
-    return torch.repeat_interleave(feats, torch.tensor([len(c["rel"]) for c in chunks]), 0)
+    return torch.repeat_interleave(raw, torch.tensor([len(c["rel"]) for c in chunks]), 0)
+
+
+def _mirror_side(model, maps, args, layer, chunks, held, val, raw) -> str:  # noqa: ANN001
+    """Symmetrize ``model`` in place from the side whose mirror image scores better on the held-out
+    samples ``val`` = (rel, size, d) (rest-space error); returns that side ("Left" or "Right")."""
+    v_rel, v_size, v_d = val
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    scores = {}
+    for keep in ("Left", "Right"):
+        model.load_state_dict(state)
+        symmetrize(model, maps, keep)
+        v_shp = None if raw is None else ((raw - model.shape_mean) / model.shape_std)[-len(v_rel) :]
+        with torch.no_grad():
+            err = (model.union_displacements(v_rel, v_size, v_shp) - v_d).norm(dim=-1)
+        scores[keep] = float(err.mean()) * 1e3
+    keep = min(scores, key=scores.get)
+    left, right = scores["Left"], scores["Right"]
+    print(f"mirror: held-out rest-space error {left:.2f} mm from the left, {right:.2f} mm from the right")
+    model.load_state_dict(state)
+    symmetrize(model, maps, keep)
+    return keep
 
 
 def _validate(
@@ -493,8 +515,7 @@ def train(args: argparse.Namespace, command: str) -> None:
     _freeze_fingers(model, rel)
     shp = v_shp = None
     if args.shape:
-        shp = _shape_inputs(model, layer, chunks, held)
-        shp, v_shp = shp[: len(rel)], shp[len(rel) :]
+        raw = _shape_inputs(model, layer, chunks, held)
         model.meta["shape_inputs"] = (
             "every activation also reads the identity's build: per limb segment log(mean distance of its "
             "vertices to the bone line / bone length), and log(size / size_ref), standardised over the "
@@ -503,6 +524,18 @@ def train(args: argparse.Namespace, command: str) -> None:
     if args.init:
         init = _load_init(model, args.init)
         model.meta["init"] = f"{args.init} ({init.meta.get('command', '')})"
+    maps = mirror_maps(model, layer.joint_names) if args.mirror else None
+    if maps is not None:  # left and right mirror images of each other from the start (its statistics too)
+        keep = _mirror_side(model, maps, args, layer, chunks, held, (v_rel, v_size, v_d), raw if args.shape else None)
+        model.meta["mirror"] = (
+            f"left/right symmetric: the {keep} joints' activations and decoders mirrored onto their partners "
+            "(unibody.correctives.mirror.symmetrize) at the start and the end; every batch holds each sample and "
+            "its mirror image, so the gradients are mirror images up to float32 rounding (which AdamW's "
+            "normalisation magnifies over thousands of steps: hence the last symmetrize)"
+        )
+    if args.shape:
+        shp = (raw - model.shape_mean) / model.shape_std
+        shp, v_shp = shp[: len(rel)], shp[len(rel) :]
     if args.small_weight:
         model.meta["small_pose_loss"] = (
             f"{args.small_weight} x mean squared displacement on {args.batch} random poses per step with "
@@ -561,8 +594,19 @@ def train(args: argparse.Namespace, command: str) -> None:
     while elapsed < budget:
         for g in opt.param_groups:  # cosine decay over the time budget
             g["lr"] = args.lr * 0.5 * (1 + math.cos(math.pi * min(elapsed / budget, 1.0)))
-        idx = torch.randint(n, (args.batch,), generator=gen)
-        pred = model.union_displacements(rel[idx], size_ref * torch.ones(1), None if shp is None else shp[idx])
+        if maps is None:
+            idx = torch.randint(n, (args.batch,), generator=gen)
+            pred = model.union_displacements(rel[idx], size_ref * torch.ones(1), None if shp is None else shp[idx])
+        else:  # each sample and its mirror image (scored back in the sample's own frame)
+            half = torch.randint(n, (args.batch // 2,), generator=gen)
+            m_rel, m_shp = maps.inputs(rel[half], None if shp is None else shp[half])
+            both = model.union_displacements(
+                torch.cat([rel[half], m_rel]),
+                size_ref * torch.ones(1),
+                None if shp is None else torch.cat([shp[half], m_shp]),
+            )
+            idx = torch.cat([half, half])
+            pred = torch.cat([both[: len(half)], maps.output(both[len(half) :])])
         err = pred - target[idx]
         loss = (1 - pw) * fit(err) if pw < 1 else 0.0
         if pw or vw:  # on the posed mesh, at the samples' real size
@@ -574,7 +618,12 @@ def train(args: argparse.Namespace, command: str) -> None:
         if args.small_weight:  # small poses: no displacement (LBS is fine there)
             axis = torch.nn.functional.normalize(torch.randn(args.batch, 77, 3, generator=gen), dim=-1)
             small = axis_angle_to_matrix(axis * 0.2 * torch.rand(args.batch, 77, 1, generator=gen))
-            still = model.union_displacements(small, size_ref * torch.ones(1), None if shp is None else shp[idx])
+            s_shp = None if shp is None else shp[idx]
+            if maps is not None:  # mirrored in pairs too
+                m_small, m_shp = maps.inputs(small[: len(half)], None if shp is None else shp[half])
+                small = torch.cat([small[: len(half)], m_small])
+                s_shp = None if shp is None else torch.cat([shp[half], m_shp])
+            still = model.union_displacements(small, size_ref * torch.ones(1), s_shp)
             loss = loss + args.small_weight * still.square().sum(-1).mean()
         opt.zero_grad()
         loss.backward()
@@ -600,6 +649,10 @@ def train(args: argparse.Namespace, command: str) -> None:
         {"model": model.state_dict(), "opt": opt.state_dict(), "step": step, "elapsed": elapsed, "best": best}, ckpt
     )
     model.load_state_dict(best["state"])
+    if maps is not None:  # the symmetry the paired batches kept, up to rounding: made exact again
+        drift = asymmetry(model, maps, v_rel, v_size, v_shp)
+        symmetrize(model, maps, keep)
+        print(f"mirror: largest asymmetry on the held-out samples before the last symmetrize {drift * 1e3:.4f} mm")
     with torch.no_grad():
         err = (model.union_displacements(v_rel, v_size, v_shp) - v_d).norm(dim=-1)
     model.meta.update(
@@ -714,6 +767,12 @@ def main() -> None:
         "--init",
         default=None,
         help="start from these weights (a fine-tune; same structure, or a pose-only model under --shape)",
+    )
+    parser.add_argument(
+        "--mirror",
+        action="store_true",
+        help="train: left and right mirror images of each other (symmetrized at the start, each sample and its "
+        "mirror image in every batch)",
     )
     parser.add_argument(
         "--small-weight",

@@ -325,7 +325,7 @@ def test_train_script_starts_a_shape_model_as_its_pose_only_init(pca, setup, tmp
         {"coeffs": torch.randn(layer.identity.num_params, generator=gen), "rel": torch.zeros(2, 77, 3, 3)}
         for _ in range(4)
     ]
-    shp = tc._shape_inputs(model, layer, chunks, held=1)
+    shp = (tc._shape_inputs(model, layer, chunks, held=1) - model.shape_mean) / model.shape_std
     assert shp.shape == (8, 9) and torch.isfinite(shp).all()
     assert shp[:6:2].mean(0).abs().max() < 1e-5  # standardised over the 3 training identities
     rel = axis_angle_to_matrix(0.5 * torch.randn(8, 77, 3, generator=gen))
