@@ -37,7 +37,7 @@ from tqdm import tqdm
 
 from unibody import BodyLayer
 from unibody.correctives.metrics import SEGMENTS, SurfaceMeasures, cone_volume
-from unibody.correctives.mirror import asymmetry, mirror_maps, symmetrize
+from unibody.correctives.mirror import CorrectivesMirror, asymmetry, mirror_maps, symmetrize
 from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES
 from unibody.correctives.training import (
@@ -228,9 +228,10 @@ def _shape_inputs(model: Correctives, layer: BodyLayer, chunks: list[dict], held
     return torch.repeat_interleave(raw, torch.tensor([len(c["rel"]) for c in chunks]), 0)
 
 
-def _mirror_side(model, maps, args, layer, chunks, held, val, raw) -> str:  # noqa: ANN001
+def _mirror_side(model: Correctives, maps: CorrectivesMirror, val: tuple, raw: torch.Tensor | None) -> str:
     """Symmetrize ``model`` in place from the side whose mirror image scores better on the held-out
-    samples ``val`` = (rel, size, d) (rest-space error); returns that side ("Left" or "Right")."""
+    samples ``val`` = (rel, size, d) (rest-space error; ``raw``: every sample's raw identity
+    features, the held-out ones last, or None); returns that side ("Left" or "Right")."""
     v_rel, v_size, v_d = val
     state = {k: v.clone() for k, v in model.state_dict().items()}
     scores = {}
@@ -526,7 +527,7 @@ def train(args: argparse.Namespace, command: str) -> None:
         model.meta["init"] = f"{args.init} ({init.meta.get('command', '')})"
     maps = mirror_maps(model, layer.joint_names) if args.mirror else None
     if maps is not None:  # left and right mirror images of each other from the start (its statistics too)
-        keep = _mirror_side(model, maps, args, layer, chunks, held, (v_rel, v_size, v_d), raw if args.shape else None)
+        keep = _mirror_side(model, maps, (v_rel, v_size, v_d), raw if args.shape else None)
         model.meta["mirror"] = (
             f"left/right symmetric: the {keep} joints' activations and decoders mirrored onto their partners "
             "(unibody.correctives.mirror.symmetrize) at the start and the end; every batch holds each sample and "
@@ -782,6 +783,8 @@ def main() -> None:
         "the rest pose): where LBS was fine, keep it",
     )
     args = parser.parse_args()
+    if args.mirror and args.batch < 2:
+        parser.error(f"--mirror: a batch holds samples and their mirrors; expected --batch >= 2, got {args.batch}")
     if args.small_weight < 0:
         parser.error(f"--small-weight: expected >= 0, got {args.small_weight}")
     if not 0 <= args.posed_weight <= 1:

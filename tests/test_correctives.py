@@ -411,11 +411,17 @@ def test_train_script_volume_loss_sees_what_the_teacher_keeps(pca, setup, tmp_pa
 
 @pytest.mark.parametrize(
     ("option", "weight"),
-    [("--posed-weight", "1.5"), ("--posed-weight", "-0.1"), ("--volume-weight", "-1"), ("--volume-segments", "Arm")],
+    [
+        ("--posed-weight", "1.5"),
+        ("--posed-weight", "-0.1"),
+        ("--volume-weight", "-1"),
+        ("--volume-segments", "Arm"),
+        ("--mirror", "--batch=1"),
+    ],
 )
 def test_train_script_rejects_a_bad_loss_weight(option, weight):
-    """train --posed-weight W (W in [0, 1]) and --volume-weight V (V >= 0): else one line naming
-    the argument, exit status 2."""
+    """train --posed-weight W (W in [0, 1]), --volume-weight V (V >= 0), --mirror with batches of
+    pairs: else one line naming the argument, exit status 2."""
     import subprocess
     import sys
     from pathlib import Path

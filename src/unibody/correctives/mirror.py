@@ -60,12 +60,12 @@ class CorrectivesMirror:
     def inputs(self, rel: torch.Tensor, shape: torch.Tensor | None = None) -> tuple:
         """The mirrored samples' inputs: rest-relative rotations (B, 77, 3, 3) of joints 1..77 and
         identity inputs (B, S + 1) or None."""
-        rel = rel.index_select(1, self.joints[1:] - 1)
-        return rel, None if shape is None else shape.index_select(1, self.shape)
+        rel = rel.index_select(1, self.joints[1:].to(rel.device) - 1)
+        return rel, None if shape is None else shape.index_select(1, self.shape.to(shape.device))
 
     def output(self, d: torch.Tensor) -> torch.Tensor:
         """Mirror union displacements (B, U, 3): ``S d[mirror(v)]`` (an involution)."""
-        return d.index_select(1, self.union) * d.new_tensor([-1.0, 1.0, 1.0])
+        return d.index_select(1, self.union.to(d.device)) * d.new_tensor([-1.0, 1.0, 1.0])
 
 
 def mirror_maps(model: Correctives, joint_names: tuple[str, ...]) -> CorrectivesMirror:
@@ -117,7 +117,7 @@ def symmetrize(model: Correctives, maps: CorrectivesMirror, keep: str = "Left") 
     The identity inputs' statistics are first made equal between partners (the mean and std of
     each pair), with the first layer rescaled so the function does not change; the finger inputs
     held by :meth:`Correctives.freeze` take their partner's values. Afterwards
-    ``f(mirror x) = mirror f(x)`` exactly.
+    ``f(mirror x) = mirror f(x)`` to rounding. A model on the CPU (what training uses).
     """
     if keep not in _SWAP:
         raise ValueError(f"keep: expected 'Left' or 'Right', got {keep!r}")
