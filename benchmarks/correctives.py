@@ -36,7 +36,7 @@ from unibody.correctives.model import Correctives
 from unibody.correctives.stress import forearm_twist_pose, stress_poses
 from unibody.correctives.training import TeacherSetup, draw_identities, teacher_targets
 from unibody.geometry.rotations import axis_angle_to_matrix
-from unibody.symmetry import canonical_mirror_map
+from unibody.symmetry import mirror
 from unibody.synth.poses import keyed_generator
 from unibody.viz.render import Camera, MeshSpec, render_image
 
@@ -201,11 +201,10 @@ def mirrored(layer: BodyLayer, tag: str) -> None:
     poses, labels = stress_poses(keyed_generator("correctives-stress", 0), seeded=0)
     left = [i for i, n in enumerate(labels) if n.endswith("(left)")]
     right = [labels.index(labels[i].replace("(left)", "(right)")) for i in left]
-    vmap = canonical_mirror_map().index
     for on in (False, True):
         a = layer.pose(prepared, poses[left], correctives=on).vertices
         b = layer.pose(prepared, poses[right], correctives=on).vertices
-        gap = (a - b[:, vmap] * a.new_tensor([-1.0, 1.0, 1.0])).norm(dim=-1) * 1e3
+        gap = (a - mirror(b)).norm(dim=-1) * 1e3
         what = "with" if on else "without"
         print(f"left vs mirrored right, {tag}, mean body, {len(left)} stress families, {what} correctives: "
               f"mean {gap.mean():.3f} mm, largest {gap.max():.2f} mm")  # fmt: skip

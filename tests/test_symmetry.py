@@ -87,3 +87,15 @@ def test_mirror_errors(rig):
         mirror(bad)
     with pytest.raises(ValueError, match=r"vertices: expected shape \(V, 3\)"):
         mirror_correspondence(torch.zeros(10, 2))
+
+
+def test_partner_joints_swap_left_and_right():
+    from unibody.rig import JOINT_NAMES
+    from unibody.symmetry import partner_joints
+
+    names = tuple(JOINT_NAMES)
+    p = partner_joints(names)
+    assert torch.equal(p[p], torch.arange(len(names)))
+    assert names[int(p[names.index("LeftForeArm")])] == "RightForeArm" and int(p[names.index("Hips")]) == 1
+    with pytest.raises(ValueError, match="joint_names: 'LeftArm' has no left/right partner 'RightArm'"):
+        partner_joints(("Root", "LeftArm"))

@@ -21,7 +21,7 @@ import torch
 
 from ._checks import check_finite, check_shape, check_tensor
 
-__all__ = ["MirrorMap", "canonical_mirror_map", "mirror", "mirror_correspondence"]
+__all__ = ["MirrorMap", "canonical_mirror_map", "mirror", "mirror_correspondence", "partner_joints"]
 
 _QUERY_BLOCK = 1024
 _START_RADIUS = 0.005  # m; the search window grows by 4x until every query found a partner inside it
@@ -139,3 +139,20 @@ def mirror(vertices: torch.Tensor) -> torch.Tensor:
     check_shape(vertices, f"B {index.numel()} 3", name="vertices")
     check_finite(vertices, "vertices")
     return vertices[:, index] * vertices.new_tensor([-1.0, 1.0, 1.0])
+
+
+@cache
+def partner_joints(joint_names: tuple[str, ...]) -> torch.Tensor:
+    """(J,) int64 each joint's left/right partner by name ("Left..." <-> "Right..."; a midline
+    joint is its own), e.g. for ``BodyLayer.joint_names``.
+
+    Raises:
+        ValueError: a "Left..." or "Right..." joint without its partner among ``joint_names``.
+    """
+    names = list(joint_names)
+    swap = {"Left": "Right", "Right": "Left"}
+    partner = [next((swap[k] + n[len(k) :] for k in swap if n.startswith(k)), n) for n in names]
+    missing = [n for n, q in zip(names, partner, strict=True) if q not in names]
+    if missing:
+        raise ValueError(f"joint_names: {missing[0]!r} has no left/right partner {partner[names.index(missing[0])]!r}")
+    return torch.tensor([names.index(q) for q in partner])

@@ -20,16 +20,10 @@ from dataclasses import dataclass
 
 import torch
 
-from ..symmetry import canonical_mirror_map
+from ..symmetry import canonical_mirror_map, partner_joints
 from .model import Correctives
 
 __all__ = ["CorrectivesMirror", "mirror_maps", "symmetrize", "asymmetry"]
-
-_SWAP = {"Left": "Right", "Right": "Left"}
-
-
-def _partner_name(name: str) -> str:
-    return next((_SWAP[k] + name[len(k) :] for k in _SWAP if name.startswith(k)), name)
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,7 +70,7 @@ def mirror_maps(model: Correctives, joint_names: tuple[str, ...]) -> Correctives
             image is not its partner's).
     """
     names = list(joint_names)
-    joints = torch.tensor([names.index(_partner_name(n)) for n in names])
+    joints = partner_joints(tuple(names))
     act = [names.index(n) for n in model.joint_names]
     active = torch.tensor([act.index(int(joints[j])) for j in act])
     vmap = canonical_mirror_map().index.to(model.vertex_ids.device)
@@ -119,7 +113,7 @@ def symmetrize(model: Correctives, maps: CorrectivesMirror, keep: str = "Left") 
     held by :meth:`Correctives.freeze` take their partner's values. Afterwards
     ``f(mirror x) = mirror f(x)`` to rounding. A model on the CPU (what training uses).
     """
-    if keep not in _SWAP:
+    if keep not in ("Left", "Right"):
         raise ValueError(f"keep: expected 'Left' or 'Right', got {keep!r}")
     w1, b1 = model.w1, model.b1
     if model.num_shape:  # equal statistics per pair, folded into the first layer

@@ -35,7 +35,6 @@ frames takes milliseconds: data is made on the fly, never stored.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, field, replace
 
@@ -45,7 +44,7 @@ from .._checks import check_finite, check_shape
 from ..body import BodyLayer, PreparedIdentity
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..rig import Rig
-from ..symmetry import canonical_mirror_map
+from ..symmetry import canonical_mirror_map, partner_joints
 from ..synth.poses import mirror_rotation, sample_poses
 from .corrupt import MocapBatch, corrupt_frames
 from .layout import MarkerLayout, vertex_normals
@@ -248,19 +247,11 @@ class SyntheticConfig:
     motion_noise: float = 0.0
 
 
-@functools.cache
-def _partners(joint_names: tuple[str, ...]) -> torch.Tensor:
-    """(77,) the left/right partner of each posed joint (itself on the midline)."""
-    names = list(joint_names[1:])
-    swap = {"Left": "Right", "Right": "Left"}
-    return torch.tensor([names.index(next((swap[k] + n[len(k) :] for k in swap if n.startswith(k)), n)) for n in names])
-
-
 def mirror_pose(pose: torch.Tensor, joint_names: tuple[str, ...]) -> torch.Tensor:
     """Reflect (B, 77, 3) T-pose-relative axis-angle poses through the sagittal plane: each
     joint takes its left/right partner's rotation, reflected ((x, y, z) -> (x, -y, -z));
     ``joint_names`` are the 78 public joints (Root first), as ``BodyLayer.joint_names``."""
-    return mirror_rotation(pose[:, _partners(tuple(joint_names))])
+    return mirror_rotation(pose[:, partner_joints(tuple(joint_names))[1:] - 1])
 
 
 def _true_first(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
