@@ -381,7 +381,7 @@ def _cached(path: Path, key: list[float]) -> dict | None:
 
 
 def _save(path: Path, value: dict) -> None:
-    """Write a cache atomically."""
+    """Write a file atomically (a cache, or the trained weights)."""
     tmp = path.with_suffix(".tmp")
     torch.save(value, tmp)
     tmp.replace(path)
@@ -673,7 +673,7 @@ def train(args: argparse.Namespace, command: str) -> None:
     state = model.state()
     state["params"] = {k: v.half() if k == "decode" else v for k, v in state["params"].items()}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    torch.save(state, args.out)
+    _save(Path(args.out), state)  # atomically: an interrupted write leaves the old file
     print(f"wrote {args.out} ({Path(args.out).stat().st_size / 1e6:.2f} MB)")
 
 
@@ -804,6 +804,8 @@ def main() -> None:
     torch.manual_seed(args.seed)
     if args.out is None:
         args.out = str(Path("src/unibody/correctives/data") / default_weights_path(args.target == "twist").name)
+    if args.init and Path(args.out).resolve() == Path(args.init).resolve():
+        parser.error(f"--out: {args.out} is the --init weights; expected another file (the input is kept)")
     if args.stage == "generate":
         generate(args)
     else:
