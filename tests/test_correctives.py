@@ -623,3 +623,23 @@ def test_shipped_weights_ignore_the_fingers(procedural):
     shape = torch.zeros(1, model.num_shape) if model.num_shape else None  # the training identities' mean build
     assert torch.equal(model.union_displacements(rel, size, shape), model.union_displacements(bent, size, shape))
     assert model.union_displacements(torch.eye(3).expand(1, 77, 3, 3), size, shape).abs().max() == 0
+
+
+@pytest.mark.parametrize("procedural", [False, True], ids=["plain", "twist"])
+def test_shipped_weights_keep_limb_volumes_at_the_stress_families(procedural):
+    """The issue's volume target on the benchmark's own draw (the 16 stress families, one side each
+    then the other, on its 10 held-out identities): every limb segment keeps >= 90 % of its rest volume."""
+    from unibody.correctives.training import draw_identities
+    from unibody.synth.poses import keyed_generator
+
+    layer = BodyLayer.from_pca(procedural=procedural, correctives=True)
+    measures = SurfaceMeasures.from_layer(layer)
+    coeffs = draw_identities(layer, 10, keyed_generator("correctives-benchmark", 0))
+    poses, _ = stress_poses(keyed_generator("correctives-stress", 0), seeded=0)
+    smallest = math.inf
+    for c in coeffs:
+        p = layer.prepare_identity(c[None])
+        out = layer.pose(p, poses)
+        vol = measures.segment_volumes(p.rest_vertices, p.rest_rotations, p.rest_joints, out.vertices, out.transforms)
+        smallest = min(smallest, float(vol.min()))
+    assert smallest >= 0.90, smallest
