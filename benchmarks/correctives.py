@@ -154,6 +154,7 @@ def main() -> None:
             mirrored(lay, tag)
     if "backends" in args.sections:
         backends(model, args)
+        backends(model_twist, args, procedural=True)
     if "speed" in args.sections:
         prepared = layer.prepare_identity(torch.zeros(1, layer.identity.num_params))
         poses, _ = stress_poses(keyed_generator("correctives-stress", args.seed))
@@ -222,17 +223,18 @@ def tpose_volumes(layer: BodyLayer, prepared: list) -> dict[bool, torch.Tensor]:
     return {on: torch.stack(rows) for on, rows in vols.items()}
 
 
-def backends(model: Correctives, args: argparse.Namespace, n: int = 8) -> None:
+def backends(model: Correctives, args: argparse.Namespace, n: int = 8, procedural: bool = False) -> None:
     """Limb volumes at the T-pose on bodies of another backend (Anny: seeded phenotypes, uniform in
     [0, 1]), whose rest poses the native-PCA training identities do not share; left and right apart."""
-    layer = BodyLayer.from_anny(correctives=model)
+    layer = BodyLayer.from_anny(procedural=procedural, correctives=model)
     phen = torch.rand(n, layer.identity.num_params, generator=keyed_generator("correctives-anny", args.seed))
     for on, v in tpose_volumes(layer, [layer.prepare_identity(c[None]) for c in phen]).items():
         text = ", ".join(
             f"{name} {float(v[:, k].min()):.0%}-{float(v[:, k].max()):.0%}" for k, (name, _) in enumerate(SEGMENTS)
         )
         print(
-            f"Anny T-pose segment volumes / rest over {n} phenotypes, {'with' if on else 'without'} correctives: {text}"
+            f"Anny T-pose segment volumes / rest over {n} phenotypes, {'twist' if procedural else 'plain'} rig, "
+            f"{'with' if on else 'without'} correctives: {text}"
         )
 
 
