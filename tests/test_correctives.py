@@ -627,8 +627,8 @@ def test_shipped_weights_ignore_the_fingers(procedural):
 
 @pytest.mark.parametrize("procedural", [False, True], ids=["plain", "twist"])
 def test_shipped_weights_keep_limb_volumes_at_the_stress_families(procedural):
-    """The issue's volume target on the benchmark's own draw (the 16 stress families, one side each
-    then the other, on its 10 held-out identities): every limb segment keeps >= 90 % of its rest volume."""
+    """The issue's volume target on the benchmark's own draw (its 8 stress families on each side, 16
+    poses, on its 10 held-out identities): every limb segment keeps >= 90 % of its rest volume."""
     from unibody.correctives.training import draw_identities
     from unibody.synth.poses import keyed_generator
 
