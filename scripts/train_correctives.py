@@ -48,7 +48,7 @@ from unibody.correctives.training import (
     teacher_targets,
     twist_targets,
 )
-from unibody.geometry.rotations import axis_angle_to_matrix
+from unibody.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from unibody.motion import load_motion
 from unibody.rig import JOINT_NAMES
 from unibody.synth.poses import keyed_generator, mirror_rotation, sample_poses
@@ -77,6 +77,29 @@ def draw_poses(n: int, generator: torch.Generator) -> torch.Tensor:
 
 FINGERS = [i - 1 for i, n in enumerate(JOINT_NAMES) if "Hand" in n and not n.endswith("Hand")]
 """Pose rows (joints 1..77) of the finger joints: straight (0, as in the T-pose) in every training pose."""
+
+
+def calm_poses(rest: torch.Tensor, n: int, generator: torch.Generator) -> torch.Tensor:
+    """(n, 77, 3) display poses between the T-pose and the identity's own rest pose: each joint at
+    t times its rest-pose rotation (t ~ U(0, 1) per pose, one t for the whole body), then turned
+    U(0, 0.2) rad about a uniform axis; fingers straight.
+
+    Why: the T-pose (arms out, elbows straight) and the poses on the way to the rest A-pose are
+    where users look at bodies, and where an Anny body, whose rest elbows are bent 34 degrees (the
+    native-PCA bodies' 25), sits outside what the generator and the motions reach. The correctives
+    trained without them shrank Anny's forearms to 87-96 % of their rest volume at the T-pose,
+    where LBS keeps 99-100 %.
+
+    Args:
+        rest: (77, 3) the identity's rest pose, T-pose-relative axis-angle (joints 1..77).
+    """
+    t = torch.rand(n, 1, 1, generator=generator, dtype=rest.dtype)
+    axis = torch.nn.functional.normalize(torch.randn(n, 77, 3, generator=generator, dtype=rest.dtype), dim=-1)
+    angle = 0.2 * torch.rand(n, 77, 1, generator=generator, dtype=rest.dtype)
+    rot = axis_angle_to_matrix(axis * angle) @ axis_angle_to_matrix(t * rest)
+    out = matrix_to_axis_angle(rot)
+    out[:, FINGERS] = 0.0
+    return out
 
 
 def load_motions(root: Path) -> list[tuple[str, torch.Tensor]]:
@@ -116,17 +139,23 @@ def generate(args: argparse.Namespace) -> None:
     else:
         coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-identities", args.seed))
     name = "chunk_anny_{:05d}" if args.backend == "anny" else "chunk_{:05d}"
+    calm = round(args.poses * args.calm_share)
+    if calm:  # their own family: its chunks are named apart and hold out their own 5 %
+        name = name.replace("chunk_", "chunk_calm_")
     motions = load_motions(Path(args.motions)) if args.motions else []
-    k = round(args.poses * args.motion_share) if motions else 0
+    k = min(round(args.poses * args.motion_share), args.poses - calm) if motions else 0
     part, parts = args.shard
     todo = [i for i in range(part, args.identities, parts) if not (data / f"{name.format(i)}.pt").exists()]
     print(f"teacher region: {len(setup.union)} vertices; {len(todo)} of {args.identities} identities to do; "
-          f"{k} of {args.poses} poses from {len(motions)} motions")  # fmt: skip
+          f"{k} of {args.poses} poses from {len(motions)} motions, {calm} calm")  # fmt: skip
     for i in tqdm(todo, desc="teacher", unit="identity", smoothing=0.1):
         prepared = layer.prepare_identity(coeffs[i : i + 1])
-        pose = draw_poses(args.poses - k, keyed_generator("correctives-poses", args.seed, i))
+        pose = draw_poses(args.poses - k - calm, keyed_generator("correctives-poses", args.seed, i))
         frames, sources = motion_frames(k, keyed_generator("correctives-motion-frames", args.seed, i), motions)
-        pose = torch.cat([pose, frames])
+        rot = prepared.rest_rotations[0]
+        rest = matrix_to_axis_angle(layer.to_relative(rot[layer.parents[1:]].transpose(-1, -2) @ rot[1:]))
+        still = calm_poses(rest.float(), calm, keyed_generator("correctives-calm-poses", args.seed, i))
+        pose = torch.cat([pose, frames, still])
         _, teacher, d = teacher_targets(layer, prepared, pose, setup, iterations=args.iterations)
         d_twist = twist_targets(prepared, pose, teacher, setup)
         rel = Correctives.rest_relative(layer.local_rotations(pose), prepared.rest_rotations, layer.parents)
@@ -137,7 +166,8 @@ def generate(args: argparse.Namespace) -> None:
             "size": size_of(prepared.rest_joints).float(),
             "coeffs": coeffs[i],
             "backend": args.backend,
-            "sources": ["draw_poses"] * (args.poses - k) + sources,
+            "sources": ["draw_poses"] * (args.poses - k - calm) + sources + ["calm_poses"] * calm,
+            "family": "calm" if calm else "",
             "recipe": {
                 "seed": args.seed,
                 "iterations": args.iterations,
@@ -146,6 +176,7 @@ def generate(args: argparse.Namespace) -> None:
                 "motions": str(args.motions or ""),
                 "motion_files": len(motions),
                 "motion_frames": sum(len(p) for _, p in motions),
+                "calm_share": args.calm_share,
             },
         }
         tmp = data / f"{name.format(i)}.tmp"
@@ -213,18 +244,22 @@ def _load_init(model: Correctives, path: str) -> Correctives:
     return init
 
 
-def _shape_inputs(model: Correctives, layer: BodyLayer, chunks: list[dict], held: int) -> torch.Tensor:
+def _shape_inputs(
+    model: Correctives, layer: BodyLayer, chunks: list[dict], held: int, stats: tuple | None = None
+) -> torch.Tensor:
     """(N samples, S + 1) the raw identity features of every sample of the chunks (standardise them
-    with the model's statistics); first sets those statistics from the training chunks (all but
-    the last ``held``)."""
+    with the model's statistics); first sets those statistics: ``stats`` = (mean, std), those of
+    the weights a fine-tune starts from (so it starts as their function, whatever its data), or
+    else from the training chunks (all but the last ``held``)."""
     with torch.no_grad():
         raw = []
         for c in chunks:
             p = _prepare(c, layer.tpose_orient.dtype)
             raw.append(model.shape_features(p.rest_vertices, p.rest_joints))
         raw = torch.cat(raw)  # statistics 0 / 1: the raw features
-        model.shape_mean.copy_(raw[:-held].mean(0))
-        model.shape_std.copy_(raw[:-held].std(0))
+        mean, std = (raw[:-held].mean(0), raw[:-held].std(0)) if stats is None else stats
+        model.shape_mean.copy_(mean)
+        model.shape_std.copy_(std)
     return torch.repeat_interleave(raw, torch.tensor([len(c["rel"]) for c in chunks]), 0)
 
 
@@ -294,6 +329,8 @@ def _recipe(chunks: list[dict], held: int, seed: int, target: str) -> str:
     recipe = chunks[0].get("recipe", {"iterations": 6, "motions": "", "motion_files": 0, "motion_frames": 0})
     seed = recipe.get("seed", seed)  # the data's own seed (generate's), not the training run's
     sources = [s for c in chunks for s in c.get("sources", ["draw_poses"] * len(c["rel"]))]
+    calm = sum(s == "calm_poses" for s in sources)
+    sources = [s for s in sources if s != "calm_poses"]
     used = [s for s in sources if s != "draw_poses"]
     motions = ""
     if used:
@@ -315,8 +352,9 @@ def _recipe(chunks: list[dict], held: int, seed: int, target: str) -> str:
             "3 rounds x 4 iterations; teacher.Contact)"
         )
     rig = "the procedural-twist rig (LBS + twist joints)" if target == "twist" else "plain LBS"
-    anny = [c for c in chunks if c.get("backend") == "anny"]
-    who = f"{len(chunks) - len(anny)} native-PCA identities (16 components N(0,1), stature U(1.0, 1.95) m, "
+    main = [c for c in chunks if not c.get("family")]
+    anny = [c for c in main if c.get("backend") == "anny"]
+    who = f"{len(main) - len(anny)} native-PCA identities (16 components N(0,1), stature U(1.0, 1.95) m, "
     who += f"keyed_generator('correctives-identities', {seed}))"
     if anny:
         aseed = anny[0].get("recipe", {}).get("seed", seed)
@@ -324,8 +362,22 @@ def _recipe(chunks: list[dict], held: int, seed: int, target: str) -> str:
             f" + {len(anny)} Anny identities (phenotypes U(0, 1), keyed_generator('correctives-identities-anny', "
             f"{aseed}); their poses keyed by that seed)"
         )
+    who += f" x {len(main[0]['rel'])} poses each"
+    if calm:  # the calm family: identities and poses of their own seeds
+        parts = []
+        for backend in ("pca", "anny"):
+            cs = [c for c in chunks if c.get("family") == "calm" and c.get("backend", "pca") == backend]
+            if cs:
+                r = cs[0]["recipe"]
+                key = "correctives-identities-anny" if backend == "anny" else "correctives-identities"
+                parts.append(f"{len(cs)} {'Anny' if backend == 'anny' else 'native-PCA'} identities "
+                             f"(keyed_generator('{key}', {r['seed']})) x {len(cs[0]['rel'])}")  # fmt: skip
+        who += (
+            f", then {calm} calm poses on " + " + ".join(parts) + " (calm_poses: every joint at t x its rest-pose "
+            "rotation, t ~ U(0, 1), turned U(0, 0.2) rad; keyed_generator('correctives-calm-poses', seed, i))"
+        )
     return (
-        f"{who} x {len(chunks[0]['rel'])} poses each, in all "
+        f"{who}, in all "
         f"{len(sources) - len(used)} from draw_poses (sample_poses with bend 0.3, chamber 0.1, fold 0.15 + "
         f"randomised stress families; keyed_generator('correctives-poses', {seed}, i)){motions}; teacher: "
         f"spokes-and-rims ARAP, {recipe['iterations']} iterations from LBS + procedural twist{volume}, joint "
@@ -475,10 +527,11 @@ def train(args: argparse.Namespace, command: str) -> None:
     chunks = [torch.load(f, weights_only=True) for f in files]
     if key not in chunks[0]:
         raise SystemExit(f"--target {args.target}: the chunks in {data} have no {key!r} (made by an older generate)")
-    # The last 5 % of each backend's identities: validation only (ordered train, then held out)
-    groups: dict[str, list[dict]] = {}
+    # The last 5 % of each backend's identities (and of each pose family's: calm poses have their
+    # own identities): validation only (ordered train, then held out)
+    groups: dict[tuple[str, str], list[dict]] = {}
     for c in chunks:
-        groups.setdefault(c.get("backend", "pca"), []).append(c)
+        groups.setdefault((c.get("backend", "pca"), c.get("family", "")), []).append(c)
     cut = {b: max(1, len(cs) // 20) for b, cs in groups.items()}
     chunks = [c for b, cs in groups.items() for c in cs[: -cut[b]]] + [
         c for b, cs in groups.items() for c in cs[-cut[b] :]
@@ -491,6 +544,9 @@ def train(args: argparse.Namespace, command: str) -> None:
     v_size = torch.cat([c["size"].expand(len(c["rel"])) for c in chunks[-held:]])
     v_d = torch.cat([c[key] for c in chunks[-held:]])
     size_ref = float(size.mean())
+    init_state = torch.load(args.init, map_location="cpu", weights_only=True) if args.init else None
+    if init_state is not None:  # a fine-tune keeps its start's normalisation: it starts as the same function
+        size_ref = float(init_state["size_ref"])
     layer = BodyLayer.from_pca()
     setup = TeacherSetup(layer, twist_start=False, volume=False, contact=False)  # its masks only
     meta = {
@@ -516,7 +572,8 @@ def train(args: argparse.Namespace, command: str) -> None:
     _freeze_fingers(model, rel)
     shp = v_shp = None
     if args.shape:
-        raw = _shape_inputs(model, layer, chunks, held)
+        stats = (init_state or {}).get("shape")
+        raw = _shape_inputs(model, layer, chunks, held, None if stats is None else (stats["mean"], stats["std"]))
         model.meta["shape_inputs"] = (
             "every activation also reads the identity's build: per limb segment log(mean distance of its "
             "vertices to the bone line / bone length), and log(size / size_ref), standardised over the "
@@ -707,6 +764,13 @@ def main() -> None:
     parser.add_argument("--target", choices=("plain", "twist"), default="plain", help="the rig the correctives serve")
     parser.add_argument("--motions", default=None, help="directory of unibody.motion/1 files (generate)")
     parser.add_argument("--motion-share", type=float, default=0.5, help="share of each identity's poses from --motions")
+    parser.add_argument(
+        "--calm-share",
+        type=float,
+        default=0.0,
+        help="generate: share of each identity's poses between the T-pose and its rest pose (calm_poses); "
+        "chunks with any are named chunk_calm_*",
+    )
     parser.add_argument("--iterations", type=int, default=6, help="ARAP iterations of the teacher (generate)")
     parser.add_argument(
         "--volume",
@@ -789,6 +853,8 @@ def main() -> None:
         parser.error(f"--small-weight: expected >= 0, got {args.small_weight}")
     if not 0 <= args.posed_weight <= 1:
         parser.error(f"--posed-weight: expected a number in [0, 1], got {args.posed_weight}")
+    if not 0 <= args.calm_share <= 1:
+        parser.error(f"--calm-share: expected a number in [0, 1], got {args.calm_share}")
     if args.volume_weight < 0:
         parser.error(f"--volume-weight: expected >= 0, got {args.volume_weight}")
     args.volume_segments = [n for n in args.volume_segments.split(",") if n]

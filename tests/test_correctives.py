@@ -342,6 +342,80 @@ def test_train_script_starts_a_shape_model_as_its_pose_only_init(pca, setup, tmp
         tc._load_init(model, str(bad))
 
 
+def _train_script():
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
+    spec = importlib.util.spec_from_file_location("train_correctives", script)
+    tc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tc)
+    return tc
+
+
+def test_train_script_calm_poses_lie_between_the_tpose_and_the_rest_pose():
+    """generate --calm-share: each calm pose is one t in [0, 1] times the identity's rest pose for
+    the whole body, every joint then within 0.2 rad; the draws span the way from the T-pose to
+    the rest pose; fingers straight. The rest pose generate derives, posed, gives the rest mesh."""
+    from unibody.geometry.rotations import matrix_to_axis_angle
+
+    tc = _train_script()
+    layer = BodyLayer.from_anny().double()
+    p = layer.prepare_identity(torch.rand(1, layer.identity.num_params, generator=torch.Generator().manual_seed(8)).double())
+    rot = p.rest_rotations[0]
+    rest = matrix_to_axis_angle(layer.to_relative(rot[layer.parents[1:]].transpose(-1, -2) @ rot[1:]))
+    moved = layer.pose(p, rest[None], correctives=False).vertices - p.rest_vertices
+    assert (moved - moved.mean(1, keepdim=True)).abs().max() < 1e-6  # the rest mesh, moved as a whole
+    poses = tc.calm_poses(rest, 64, torch.Generator().manual_seed(9))
+    assert poses.shape == (64, 77, 3) and (poses[:, tc.FINGERS] == 0).all()
+    body = [i for i in range(77) if i not in tc.FINGERS]
+    ts = torch.linspace(0, 1, 201, dtype=torch.float64)
+    along = axis_angle_to_matrix(ts[:, None, None] * rest[body])  # (T, J, 3, 3)
+    r = axis_angle_to_matrix(poses[:, body])
+    cos = ((r[:, None] @ along[None].transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+    worst = torch.arccos(cos.clamp(-1, 1)).amax(-1)  # (64, T): the farthest joint from t x rest
+    best, at = worst.min(1)
+    assert best.max() < 0.2 + 0.01  # every pose: one t, every joint within the 0.2 rad turn
+    assert ts[at].min() < 0.1 and ts[at].max() > 0.9  # from the T-pose to the rest pose
+    assert rest[body].norm(dim=-1).max() > 0.5  # the rest pose is far from the T-pose (the arms)
+
+
+def test_train_script_fine_tune_starts_as_its_init_on_other_data(pca, setup, tmp_path):
+    """--init on a data set with other identities (more chunks, another size mix): the model keeps
+    the init's size_ref and identity statistics, so it starts as the init's function; without
+    them (statistics of the new chunks) it would not."""
+    tc = _train_script()
+    layer, _ = pca
+    gen = torch.Generator().manual_seed(12)
+    init = tc.build_model(layer, setup, 0.31, {}, 16, shape=True)
+    with torch.no_grad():
+        for q in init.parameters():
+            q.copy_(0.2 * torch.randn(q.shape, generator=gen))
+        init.shape_mean.copy_(torch.randn(init.num_shape, generator=gen))
+        init.shape_std.copy_(0.5 + torch.rand(init.num_shape, generator=gen))
+    torch.save(init.state(), tmp_path / "init.pt")
+    state = torch.load(tmp_path / "init.pt", weights_only=True)
+    chunks = [
+        {"coeffs": torch.randn(layer.identity.num_params, generator=gen), "rel": torch.zeros(2, 77, 3, 3)}
+        for _ in range(5)
+    ]
+    rel = axis_angle_to_matrix(0.5 * torch.randn(10, 77, 3, generator=gen))
+    size = torch.rand(10, generator=gen) * 0.1 + 0.25
+    outs, raws = {}, {}
+    for keep in (True, False):
+        model = tc.build_model(layer, setup, float(state["size_ref"]) if keep else 0.3, {}, 16, shape=True)
+        stats = (state["shape"]["mean"], state["shape"]["std"]) if keep else None
+        raw = raws[keep] = tc._shape_inputs(model, layer, chunks, 1, stats)
+        tc._load_init(model, str(tmp_path / "init.pt"))
+        with torch.no_grad():
+            outs[keep] = model.union_displacements(rel, size, (raw - model.shape_mean) / model.shape_std)
+    with torch.no_grad():
+        ref = init.union_displacements(rel, size, (raws[True] - init.shape_mean) / init.shape_std)
+    assert ref.abs().max() > 1e-3
+    assert (outs[True] - ref).abs().max() < 1e-6 * ref.abs().max()
+    assert (outs[False] - ref).abs().max() > 1e-2 * ref.abs().max()
+
+
 def test_train_script_prepares_each_chunk_with_its_backend():
     """A chunk of Anny phenotypes (generate --backend anny) is prepared by Anny, a chunk without a
     backend by the native PCA; either is posed on the canonical rig: the identity rotations
