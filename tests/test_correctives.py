@@ -20,6 +20,18 @@ from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.rig import JOINT_NAMES
 
 
+def _train_script():
+    """scripts/train_correctives.py as a module."""
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
+    spec = importlib.util.spec_from_file_location("train_correctives", script)
+    tc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tc)
+    return tc
+
+
 def _chain_model(rig, seed: int = 0, shape: bool = False) -> Correctives:
     """A random model on the 5-joint chain rig: joints 2..4 active, each over the vertices it skins;
     with ``shape``, also reading the build of the segments 2-3 and 3-4 (raw features: statistics 0 / 1)."""
@@ -271,13 +283,7 @@ def test_shipped_weights_carry_their_recipe(procedural):
 def test_train_script_blends_rebuild_the_poses_of_a_chunk(pca, setup, tmp_path):
     """The posed loss's blended rotations, rebuilt from a chunk's identity and rest-relative
     rotations, map a rest-space displacement onto the posed mesh exactly (float64): on both rigs."""
-    import importlib.util
-    from pathlib import Path
-
-    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
-    spec = importlib.util.spec_from_file_location("train_correctives", script)
-    tc = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tc)
+    tc = _train_script()
     layer, _ = pca
     coeffs = 0.5 * torch.randn(layer.identity.num_params, generator=torch.Generator().manual_seed(4))
     poses, labels = stress_poses(torch.Generator().manual_seed(0), seeded=0)
@@ -302,13 +308,7 @@ def test_train_script_blends_rebuild_the_poses_of_a_chunk(pca, setup, tmp_path):
 def test_train_script_starts_a_shape_model_as_its_pose_only_init(pca, setup, tmp_path):
     """--shape --init POSE_ONLY: the identity inputs start at zero weight, so the new model is the
     same function of the pose for every identity; statistics come from the training identities."""
-    import importlib.util
-    from pathlib import Path
-
-    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
-    spec = importlib.util.spec_from_file_location("train_correctives", script)
-    tc = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tc)
+    tc = _train_script()
     layer, _ = pca
     pose_only = tc.build_model(layer, setup, 0.3, {}, 16)
     gen = torch.Generator().manual_seed(2)
@@ -340,17 +340,6 @@ def test_train_script_starts_a_shape_model_as_its_pose_only_init(pca, setup, tmp
     torch.save(state, bad)
     with pytest.raises(SystemExit, match="--init: .*bad.pt has w1 of shape"):
         tc._load_init(model, str(bad))
-
-
-def _train_script():
-    import importlib.util
-    from pathlib import Path
-
-    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
-    spec = importlib.util.spec_from_file_location("train_correctives", script)
-    tc = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tc)
-    return tc
 
 
 def test_train_script_calm_poses_lie_between_the_tpose_and_the_rest_pose():
@@ -420,13 +409,7 @@ def test_train_script_prepares_each_chunk_with_its_backend():
     """A chunk of Anny phenotypes (generate --backend anny) is prepared by Anny, a chunk without a
     backend by the native PCA; either is posed on the canonical rig: the identity rotations
     relative to its rest pose give its rest mesh back (up to where the root is placed)."""
-    import importlib.util
-    from pathlib import Path
-
-    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
-    spec = importlib.util.spec_from_file_location("train_correctives", script)
-    tc = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tc)
+    tc = _train_script()
     anny = BodyLayer.from_anny().double()
     pca = BodyLayer.from_pca().double()
     phen = torch.rand(anny.identity.num_params, generator=torch.Generator().manual_seed(6))
@@ -455,13 +438,7 @@ def test_train_script_rejects_a_bad_shard(shard):
 def test_train_script_volume_loss_sees_what_the_teacher_keeps(pca, setup, tmp_path):
     """The volume loss, on a chunk rebuilt like the train stage's: near 0 for the teacher's targets
     (it holds each segment's volume), not for plain LBS, and differentiable in the moves."""
-    import importlib.util
-    from pathlib import Path
-
-    script = Path(__file__).resolve().parents[1] / "scripts" / "train_correctives.py"
-    spec = importlib.util.spec_from_file_location("train_correctives", script)
-    tc = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tc)
+    tc = _train_script()
     layer, prepared = pca
     poses, labels = stress_poses(torch.Generator().manual_seed(0), seeded=0)
     pose = poses[[labels.index("elbow 150 (left)"), labels.index("squat: hip 120 + knee 150 (left)")]]
@@ -717,3 +694,33 @@ def test_shipped_weights_keep_limb_volumes_at_the_stress_families(procedural):
         vol = measures.segment_volumes(p.rest_vertices, p.rest_rotations, p.rest_joints, out.vertices, out.transforms)
         smallest = min(smallest, float(vol.min()))
     assert smallest >= 0.90, smallest
+
+
+@pytest.mark.parametrize("procedural", [False, True], ids=["plain", "twist"])
+def test_shipped_weights_keep_anny_limbs_at_the_tpose(procedural):
+    """Where users look at a body: Anny (the README's backend) at the T-pose and half-way to its
+    rest pose, 6 seeded phenotypes that trained nothing (children to the elderly). LBS keeps the
+    forearms at 99-101 % of their rest volume there (upper arms up to 108 %); no arm segment may
+    end farther from its rest volume than 5 % or than LBS leaves it, whichever is more (the plain
+    rig's weights before the calm poses: a forearm at 83 %, where LBS keeps 101 %)."""
+    from unibody.correctives.metrics import SEGMENTS
+    from unibody.geometry.rotations import matrix_to_axis_angle
+    from unibody.synth.poses import keyed_generator
+
+    layer = BodyLayer.from_anny(procedural=procedural, correctives=True)
+    measures = SurfaceMeasures.from_layer(layer)
+    arms = [k for k, (name, _) in enumerate(SEGMENTS) if "Arm" in name]
+    phen = torch.rand(6, layer.identity.num_params, generator=keyed_generator("correctives-anny-test", 0))
+    worst = []
+    for c in phen:
+        p = layer.prepare_identity(c[None])
+        rot = p.rest_rotations[0]
+        rest = matrix_to_axis_angle(layer.to_relative(rot[layer.parents[1:]].transpose(-1, -2) @ rot[1:]))
+        pose = torch.stack([torch.zeros_like(rest), 0.5 * rest])
+        off = (
+            measures.segment_volumes(p.rest_vertices, p.rest_rotations, p.rest_joints, o.vertices, o.transforms)[:, arms]
+            for o in (layer.pose(p, pose), layer.pose(p, pose, correctives=False))
+        )
+        corr, lbs = ((v - 1).abs() for v in off)
+        worst.append(float((corr - lbs.clamp_min(0.05)).max()))
+    assert max(worst) <= 0.0, worst
