@@ -79,6 +79,13 @@ FINGERS = [i - 1 for i, n in enumerate(JOINT_NAMES) if "Hand" in n and not n.end
 """Pose rows (joints 1..77) of the finger joints: straight (0, as in the T-pose) in every training pose."""
 
 
+def rest_pose(layer: BodyLayer, prepared) -> torch.Tensor:  # noqa: ANN001 (a PreparedIdentity)
+    """(77, 3) the rest pose of a prepared identity (its first), T-pose-relative axis-angle: posed
+    with it, the identity gives its rest mesh back."""
+    rot = prepared.rest_rotations[0]
+    return matrix_to_axis_angle(layer.to_relative(rot[layer.parents[1:]].transpose(-1, -2) @ rot[1:]))
+
+
 def calm_poses(rest: torch.Tensor, n: int, generator: torch.Generator) -> torch.Tensor:
     """(n, 77, 3) display poses between the T-pose and the identity's own rest pose: each joint at
     t times its rest-pose rotation (t ~ U(0, 1) per pose, one t for the whole body), then turned
@@ -152,10 +159,11 @@ def generate(args: argparse.Namespace) -> None:
         prepared = layer.prepare_identity(coeffs[i : i + 1])
         pose = draw_poses(args.poses - k - calm, keyed_generator("correctives-poses", args.seed, i))
         frames, sources = motion_frames(k, keyed_generator("correctives-motion-frames", args.seed, i), motions)
-        rot = prepared.rest_rotations[0]
-        rest = matrix_to_axis_angle(layer.to_relative(rot[layer.parents[1:]].transpose(-1, -2) @ rot[1:]))
-        still = calm_poses(rest.float(), calm, keyed_generator("correctives-calm-poses", args.seed, i))
-        pose = torch.cat([pose, frames, still])
+        if calm:
+            still = calm_poses(rest_pose(layer, prepared), calm, keyed_generator("correctives-calm-poses", args.seed, i))
+            pose = torch.cat([pose, frames, still])
+        else:
+            pose = torch.cat([pose, frames])
         _, teacher, d = teacher_targets(layer, prepared, pose, setup, iterations=args.iterations)
         d_twist = twist_targets(prepared, pose, teacher, setup)
         rel = Correctives.rest_relative(layer.local_rotations(pose), prepared.rest_rotations, layer.parents)

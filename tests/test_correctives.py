@@ -346,13 +346,10 @@ def test_train_script_calm_poses_lie_between_the_tpose_and_the_rest_pose():
     """generate --calm-share: each calm pose is one t in [0, 1] times the identity's rest pose for
     the whole body, every joint then within 0.2 rad; the draws span the way from the T-pose to
     the rest pose; fingers straight. The rest pose generate derives, posed, gives the rest mesh."""
-    from unibody.geometry.rotations import matrix_to_axis_angle
-
     tc = _train_script()
     layer = BodyLayer.from_anny().double()
     p = layer.prepare_identity(torch.rand(1, layer.identity.num_params, generator=torch.Generator().manual_seed(8)).double())
-    rot = p.rest_rotations[0]
-    rest = matrix_to_axis_angle(layer.to_relative(rot[layer.parents[1:]].transpose(-1, -2) @ rot[1:]))
+    rest = tc.rest_pose(layer, p)
     moved = layer.pose(p, rest[None], correctives=False).vertices - p.rest_vertices
     assert (moved - moved.mean(1, keepdim=True)).abs().max() < 1e-6  # the rest mesh, moved as a whole
     poses = tc.calm_poses(rest, 64, torch.Generator().manual_seed(9))
@@ -704,9 +701,9 @@ def test_shipped_weights_keep_anny_limbs_at_the_tpose(procedural):
     end farther from its rest volume than 5 % or than LBS leaves it, whichever is more (the plain
     rig's weights before the calm poses: a forearm at 83 %, where LBS keeps 101 %)."""
     from unibody.correctives.metrics import SEGMENTS
-    from unibody.geometry.rotations import matrix_to_axis_angle
     from unibody.synth.poses import keyed_generator
 
+    tc = _train_script()
     layer = BodyLayer.from_anny(procedural=procedural, correctives=True)
     measures = SurfaceMeasures.from_layer(layer)
     arms = [k for k, (name, _) in enumerate(SEGMENTS) if "Arm" in name]
@@ -714,8 +711,7 @@ def test_shipped_weights_keep_anny_limbs_at_the_tpose(procedural):
     worst = []
     for c in phen:
         p = layer.prepare_identity(c[None])
-        rot = p.rest_rotations[0]
-        rest = matrix_to_axis_angle(layer.to_relative(rot[layer.parents[1:]].transpose(-1, -2) @ rot[1:]))
+        rest = tc.rest_pose(layer, p)
         pose = torch.stack([torch.zeros_like(rest), 0.5 * rest])
         off = (
             measures.segment_volumes(p.rest_vertices, p.rest_rotations, p.rest_joints, o.vertices, o.transforms)[:, arms]
