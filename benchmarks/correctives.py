@@ -11,9 +11,12 @@ both rigs), the
 cost of posing with correctives at batch 1 and 32 on both rigs (float32, one thread, median of 15
 interleaved rounds of 10 calls),
 and what pose inversion leaves on meshes made with correctives, modelling plain LBS
-(``corrective_rounds=0``) and knowing the correctives (``corrective_rounds=2``, the default).
+(``corrective_rounds=0``) and knowing the correctives (``corrective_rounds=2``, the default);
+how far the teacher and the MLP move flesh that one bone carries off that bone (stress poses, and
+the arms of Anny bodies at the T-pose).
 
     OMP_NUM_THREADS=1 python benchmarks/correctives.py [--identities 10] [--png docs/correctives.png]
+        [--section-png docs/correctives_section.png]
 
 The "MLP + twist" row poses with ``BodyLayer.from_pca(procedural=True)`` and the twist-rig
 weights (``--weights-twist``, default the shipped ``correctives_twist.pt``); the teacher row is
@@ -128,6 +131,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--png", default=None)
+    parser.add_argument("--section-png", default=None, help="the arm cross-sections of the default Anny body")
     parser.add_argument(
         "--sections",
         default="quality small mirror backends speed inversion",
@@ -167,6 +171,8 @@ def main() -> None:
         inversion(layer, args)
     if args.png:
         picture(layer, args.png)
+    if args.section_png:
+        section_png(model, args.section_png)
 
 
 def small(layer: BodyLayer, tag: str, args: argparse.Namespace) -> None:
@@ -236,6 +242,69 @@ def backends(model: Correctives, args: argparse.Namespace, n: int = 8, procedura
             f"Anny T-pose segment volumes / rest over {n} phenotypes, {'twist' if procedural else 'plain'} rig, "
             f"{'with' if on else 'without'} correctives: {text}"
         )
+    # How far the correctives move the arms' one-bone flesh (skinning weight >= 0.99) off its bone there
+    w = layer.skinning.dense().detach().double().numpy()
+    names = list(layer.joint_names)
+    moved = {j: [] for j in ("LeftArm", "RightArm", "LeftForeArm", "RightForeArm")}
+    for c in phen:
+        p = layer.prepare_identity(c[None])
+        on, off = (layer.pose(p, torch.zeros(1, 77, 3), correctives=k).vertices[0] for k in (True, False))
+        for j, vals in moved.items():
+            one = torch.from_numpy((w.argmax(1) == names.index(j)) & (w.max(1) >= 0.99))
+            vals.append(float((on - off)[one].norm(dim=-1).mean()) * 1e3)
+    text = ", ".join(f"{j} {min(v):.1f}-{max(v):.1f}" for j, v in moved.items())
+    print(f"Anny T-pose, one-bone flesh of the arms moved off LBS by the correctives (mean per segment, mm): {text}")
+
+
+def _pixel(q: np.ndarray, frame: tuple) -> tuple[float, float]:
+    """Image position of point q in a section's ``frame`` (origin, x axis, y axis; pixels per metre)."""
+    o, x, y = frame
+    return (210 + float((q - o) @ x), 220 + float((q - o) @ y))
+
+
+def section_png(model: Correctives, path: str) -> None:
+    """Cross-sections of the default Anny body's left upper arm and forearm (half-way along each bone)
+    at the T-pose, in the bone's frame (the bone at the dot; 1 cm grid): LBS, the teacher without
+    and with anchors, and the correctives ``model``."""
+    layer = BodyLayer.from_anny(correctives=model).double()
+    p = layer.prepare_identity(torch.full((1, layer.identity.num_params), 0.5, dtype=torch.float64))
+    pose = torch.zeros(1, 77, 3, dtype=torch.float64)
+    out = layer.pose(p, pose, correctives=False)
+    meshes = {"LBS": out.vertices[0].numpy()}
+    for anchor in (0.0, float(model.meta.get("teacher_anchor", 0.0)) or 0.01):
+        setup = TeacherSetup(layer, anchor=anchor)
+        label = f"teacher, anchor {anchor:g}" + (" (before 2026-11-28)" if anchor == 0 else "")
+        meshes[label] = teacher_targets(layer, p, pose, setup, iterations=12)[1][0].numpy()
+    meshes["correctives MLP (these weights)"] = layer.pose(p, pose).vertices[0].numpy()
+    faces, joints, names = layer.faces.numpy(), out.joints[0].numpy(), list(layer.joint_names)
+    colours = [(0, 0, 0), (40, 90, 200), (20, 150, 60), (200, 30, 30)]
+    panels = []
+    for a, b, title in (("LeftArm", "LeftForeArm", "upper arm"), ("LeftForeArm", "LeftHand", "forearm")):
+        ja, jb = joints[names.index(a)], joints[names.index(b)]
+        o, n = 0.5 * (ja + jb), (jb - ja) / np.linalg.norm(jb - ja)
+        up = np.array([0.0, 1.0, 0.0]) - n * n[1]
+        up /= np.linalg.norm(up)
+        side = np.cross(n, up)
+        im = Image.new("RGB", (420, 560), "white")
+        draw = ImageDraw.Draw(im)
+        scale = 420 / 0.16  # 16 cm across
+        frame = (o, side * scale, -up * scale)  # pixel = (210, 220) + ((q - o) . side, -(q - o) . up) * scale
+
+        for g in range(-8, 12):
+            draw.line([(210 + g * scale / 100, 20), (210 + g * scale / 100, 480)], fill=(235, 235, 235))
+            draw.line([(0, 220 + g * scale / 100), (420, 220 + g * scale / 100)], fill=(235, 235, 235))
+        draw.ellipse([206, 216, 214, 224], fill=(0, 0, 0))
+        for k, (label, v) in enumerate(meshes.items()):
+            d = (v - o) @ n
+            for f in faces[(d[faces].min(1) < 0) & (d[faces].max(1) > 0)]:
+                cut = [v[f[i]] + d[f[i]] / (d[f[i]] - d[f[(i + 1) % 3]]) * (v[f[(i + 1) % 3]] - v[f[i]])
+                       for i in range(3) if (d[f[i]] < 0) != (d[f[(i + 1) % 3]] < 0)]  # fmt: skip
+                draw.line([_pixel(cut[0], frame), _pixel(cut[1], frame)], fill=colours[k], width=2)
+            draw.text((8, 492 + 15 * k), label, fill=colours[k])
+        draw.text((8, 6), f"Anny (default), T-pose: left {title}, half-way along the bone", fill=(0, 0, 0))
+        panels.append(np.asarray(im))
+    Image.fromarray(np.concatenate(panels, 1)).save(path)
+    print(f"wrote {path}")
 
 
 def inversion(layer: BodyLayer, args: argparse.Namespace) -> None:
@@ -275,7 +344,12 @@ def quality(layer: BodyLayer, twist: BodyLayer, args: argparse.Namespace) -> Non
     measures = SurfaceMeasures.from_layer(layer)
     meta = layer.correctives.meta
     volume, contact = bool(meta.get("teacher_volume", False)), bool(meta.get("teacher_contact", False))
-    setup = TeacherSetup(layer, volume=volume, contact=contact)
+    anchor = float(meta.get("teacher_anchor", 0.0))  # weights before 2026-11-28's anchored teacher: none
+    setup = TeacherSetup(layer, volume=volume, contact=contact, anchor=anchor)
+    # Flesh one bone carries (weight >= 0.99) inside the relaxed region: how far each method moves it off
+    # where its rig's skinning puts it (LBS: 0 by construction; "MLP + twist" against "LBS + twist").
+    one_bone = torch.from_numpy((measures.weights.max(1) >= 0.99) & setup.free)
+    drift, skinned = {m: [] for m in METHODS[2:]}, {}
     coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-benchmark", args.seed))
     poses, labels = stress_poses(keyed_generator("correctives-stress", args.seed))
     acc = {m: {"strain": [], "dihedral": [], "volume": [], "isect": [], "section": []} for m in METHODS}
@@ -291,6 +365,11 @@ def quality(layer: BodyLayer, twist: BodyLayer, args: argparse.Namespace) -> Non
             corr = m.startswith("MLP")
             out = lay.pose(prepared, poses, correctives=corr)
             verts = teacher.float() if m == "teacher" else out.vertices
+            if m.startswith("LBS"):  # METHODS lists both skinnings first
+                skinned[m] = out.vertices
+            else:
+                lbs = skinned["LBS + twist" if "twist" in m else "LBS"]
+                drift[m].append((verts - lbs)[:, one_bone].norm(dim=-1).mean(-1) * 1e3)
             s, a = measures.distortion(prepared.rest_vertices, verts)
             acc[m]["strain"].append(s.flatten())
             acc[m]["dihedral"].append(a.flatten())
@@ -341,8 +420,15 @@ def quality(layer: BodyLayer, twist: BodyLayer, args: argparse.Namespace) -> Non
         i, p, k = np.unravel_index(int(vol.argmin()), tuple(vol.shape))
         print(f"  {m:12s} {float((vol < 0.9).float().mean()):6.2%}; {float(vol.min()):.1%} {SEGMENTS[k][0]}, "
               f"{labels[p]}, identity {i}")  # fmt: skip
+    print(
+        f"\none-bone flesh moved off its bone ({int(one_bone.sum())} vertices of the relaxed region with a "
+        "skinning weight >= 0.99; mean |x - the rig's LBS| per mesh), mm: mean / P95 / max over meshes"
+    )
+    for m, d in drift.items():
+        d = torch.cat(d)
+        print(f"  {m:12s} {float(d.mean()):.1f} / {float(d.quantile(0.95)):.1f} / {float(d.max()):.1f}")
     print(f"\nteacher: {args.teacher_iterations} ARAP iterations, volume {'on' if volume else 'off'}, "
-          f"contact {'on' if contact else 'off'}")  # fmt: skip
+          f"contact {'on' if contact else 'off'}, anchor {anchor:g}")  # fmt: skip
     for m, errs in fit.items():
         err = torch.stack(errs) * 1e3  # (identities, poses, V)
         print(f"{m} vs teacher on the stress poses: mean {err.mean():.2f} mm, per-mesh max mean "

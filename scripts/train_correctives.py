@@ -40,7 +40,9 @@ from unibody.correctives.metrics import SEGMENTS, SurfaceMeasures, cone_volume
 from unibody.correctives.mirror import CorrectivesMirror, asymmetry, mirror_maps, symmetrize
 from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES
+from unibody.correctives.teacher import RELEASE
 from unibody.correctives.training import (
+    ANCHOR,
     TeacherSetup,
     blended_rotations,
     draw_identities,
@@ -139,7 +141,7 @@ def generate(args: argparse.Namespace) -> None:
     data = Path(args.data)
     data.mkdir(parents=True, exist_ok=True)
     layer = _backend_layer(args.backend, torch.float32)
-    setup = TeacherSetup(layer, volume=args.volume, contact=args.contact)
+    setup = TeacherSetup(layer, volume=args.volume, contact=args.contact, anchor=args.anchor)
     if args.backend == "anny":  # phenotypes uniform in [0, 1]: babies to the elderly, every build
         gen = keyed_generator("correctives-identities-anny", args.seed)
         coeffs = torch.rand(args.identities, layer.identity.num_params, generator=gen)
@@ -160,7 +162,8 @@ def generate(args: argparse.Namespace) -> None:
         pose = draw_poses(args.poses - k - calm, keyed_generator("correctives-poses", args.seed, i))
         frames, sources = motion_frames(k, keyed_generator("correctives-motion-frames", args.seed, i), motions)
         if calm:
-            still = calm_poses(rest_pose(layer, prepared), calm, keyed_generator("correctives-calm-poses", args.seed, i))
+            gen = keyed_generator("correctives-calm-poses", args.seed, i)
+            still = calm_poses(rest_pose(layer, prepared), calm, gen)
             pose = torch.cat([pose, frames, still])
         else:
             pose = torch.cat([pose, frames])
@@ -181,6 +184,7 @@ def generate(args: argparse.Namespace) -> None:
                 "iterations": args.iterations,
                 "volume": args.volume,
                 "contact": args.contact,
+                "anchor": args.anchor,
                 "motions": str(args.motions or ""),
                 "motion_files": len(motions),
                 "motion_frames": sum(len(p) for _, p in motions),
@@ -358,6 +362,11 @@ def _recipe(chunks: list[dict], held: int, seed: int, target: str) -> str:
         volume += (
             ", then self-contact resolved (free vertices inside another part pulled back along their normals, "
             "3 rounds x 4 iterations; teacher.Contact)"
+        )
+    if recipe.get("anchor"):
+        volume += (
+            f", flesh one bone carries tied to it (teacher.bone_anchors, strength {recipe['anchor']:g}; dropped "
+            f"within {RELEASE} rings of vertices in contact)"
         )
     rig = "the procedural-twist rig (LBS + twist joints)" if target == "twist" else "plain LBS"
     main = [c for c in chunks if not c.get("family")] or chunks  # calm chunks alone: described as both
@@ -565,6 +574,7 @@ def train(args: argparse.Namespace, command: str) -> None:
         "teacher_iterations": int(chunks[0].get("recipe", {}).get("iterations", 6)),
         "teacher_volume": bool(chunks[0].get("recipe", {}).get("volume", False)),
         "teacher_contact": bool(chunks[0].get("recipe", {}).get("contact", False)),
+        "teacher_anchor": float(chunks[0].get("recipe", {}).get("anchor", 0.0)),
         "generate": args.generate_command
         or f"python scripts/train_correctives.py generate --identities {len(chunks)} --seed {args.seed}",
     }
@@ -793,6 +803,13 @@ def main() -> None:
         help="the teacher pulls penetrating vertices out of the body (generate; --no-contact: no self-contact)",
     )
     parser.add_argument(
+        "--anchor",
+        type=float,
+        default=ANCHOR,
+        help="the teacher's tie of flesh one bone carries to that bone, in units of the mean Laplacian diagonal "
+        f"(generate; 0: none; default {ANCHOR})",
+    )
+    parser.add_argument(
         "--shard",
         type=_shard,
         default=(0, 1),
@@ -863,6 +880,8 @@ def main() -> None:
         parser.error(f"--posed-weight: expected a number in [0, 1], got {args.posed_weight}")
     if not 0 <= args.calm_share <= 1:
         parser.error(f"--calm-share: expected a number in [0, 1], got {args.calm_share}")
+    if not args.anchor >= 0:  # NaN fails too
+        parser.error(f"--anchor: expected a number >= 0, got {args.anchor}")
     if args.volume_weight < 0:
         parser.error(f"--volume-weight: expected >= 0, got {args.volume_weight}")
     args.volume_segments = [n for n in args.volume_segments.split(",") if n]

@@ -14,7 +14,7 @@ from unibody.body import PreparedIdentity
 from unibody.correctives.metrics import SurfaceMeasures, cone_volume
 from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES, stress_poses
-from unibody.correctives.teacher import Arap
+from unibody.correctives.teacher import Arap, bone_anchors
 from unibody.correctives.training import TeacherSetup, blended_rotations, teacher_targets, twist_targets
 from unibody.geometry.rotations import axis_angle_to_matrix
 from unibody.rig import JOINT_NAMES
@@ -348,7 +348,8 @@ def test_train_script_calm_poses_lie_between_the_tpose_and_the_rest_pose():
     the rest pose; fingers straight. The rest pose generate derives, posed, gives the rest mesh."""
     tc = _train_script()
     layer = BodyLayer.from_anny().double()
-    p = layer.prepare_identity(torch.rand(1, layer.identity.num_params, generator=torch.Generator().manual_seed(8)).double())
+    phen = torch.rand(1, layer.identity.num_params, generator=torch.Generator().manual_seed(8))
+    p = layer.prepare_identity(phen.double())
     rest = tc.rest_pose(layer, p)
     moved = layer.pose(p, rest[None], correctives=False).vertices - p.rest_vertices
     assert (moved - moved.mean(1, keepdim=True)).abs().max() < 1e-6  # the rest mesh, moved as a whole
@@ -560,6 +561,48 @@ def test_arap_keeps_rigid_motions():
     assert np.abs(out - moved).max() < 1e-9
 
 
+def test_arap_anchors_keep_rigid_motions_and_hold_a_sliding_limb():
+    """Anchored, a rigid motion of the rest mesh is still the minimum (the anchors' own start); a
+    middle third displaced off its bones slides back toward where it started only with anchors."""
+    rig = chain_rig()
+    rest, faces = rig.bind_vertices.numpy().astype(np.float64), rig.faces.numpy().astype(np.int64)
+    free = np.zeros(len(rest), bool)
+    free[len(rest) // 3 : 2 * len(rest) // 3] = True
+    rot = axis_angle_to_matrix(torch.tensor([0.3, -0.5, 0.2], dtype=torch.float64)).numpy()
+    moved = rest @ rot.T + np.array([0.1, 0.2, -0.3])
+    ones = np.ones(len(rest))
+    assert np.abs(Arap(rest, faces, free, iterations=3, anchor=ones)(moved[None])[0] - moved).max() < 1e-9
+    start = rest.copy()
+    start[free] += np.array([0.0, 0.05, 0.0])  # the free part moved off: the relaxation pulls it back to its ends
+    plain = Arap(rest, faces, free, iterations=20)(start[None])[0]
+    held = Arap(rest, faces, free, iterations=20, anchor=10 * ones)(start[None])[0]
+    moved_plain, moved_held = (np.linalg.norm(x[free] - start[free], axis=1).mean() for x in (plain, held))
+    assert moved_held < 0.5 * moved_plain, (moved_held, moved_plain)
+
+
+def test_bone_anchors_follow_the_dominant_weight():
+    """A vertex one bone carries gets the full tie, one shared half and half gets none."""
+    w = np.array([[1.0, 0.0], [0.5, 0.5], [0.75, 0.25], [0.2, 0.8]])
+    assert np.allclose(bone_anchors(w, 0.02), 0.02 * np.array([1.0, 0.0, 0.25, 0.36]))
+
+
+def test_teacher_keeps_anny_arm_flesh_on_its_bones_at_the_tpose():
+    """Anny's rest pose has its arms down and elbows bent; at the T-pose the relaxation, held only
+    at the trunk and the hand, would let the arms' flesh sag off the bones (the unanchored teacher:
+    47 mm mean on the upper arm's one-bone vertices, the humerus at the skin). Anchored, one-bone
+    flesh stays within 15 mm of where its bone carries it."""
+    layer = BodyLayer.from_anny()
+    p = layer.prepare_identity(torch.full((1, layer.identity.num_params), 0.5))
+    setup = TeacherSetup(layer)
+    lbs, teacher, _ = teacher_targets(layer, p, torch.zeros(1, 77, 3), setup)
+    w = setup.weights
+    names = list(layer.joint_names)
+    for joint in ("LeftArm", "LeftForeArm", "RightArm", "RightForeArm"):
+        one_bone = (w.argmax(1) == names.index(joint)) & (w.max(1) >= 0.99) & setup.free
+        drift = float((teacher - lbs)[0, one_bone].norm(dim=-1).mean())
+        assert drift < 0.015, (joint, drift)
+
+
 def test_arap_volume_constraint_reaches_its_target():
     """With a volume constraint the relaxed mesh meets the requested cone volume (here 80 % of the
     start's) to 1e-4, the fixed vertices stay put, and no constraint leaves the plain result."""
@@ -614,7 +657,9 @@ def test_contact_finds_nothing_on_the_rest_mesh(pca, setup):
 
 def test_teacher_resolves_self_contact_at_a_deep_knee_bend(pca):
     """Knee at 150 deg: with contact the teacher leaves under half of the intersecting triangle
-    pairs it leaves without (and LBS leaves more still); the pulled vertices are free ones only."""
+    pairs that LBS and the teacher without contact leave; the pulled vertices are free ones only.
+    (Without contact the anchored relaxation leaves about as many as LBS: only the unanchored one,
+    which slid the calf off its bone, had fewer.)"""
     layer, prepared = pca
     measures = SurfaceMeasures.from_layer(layer)
     poses, labels = stress_poses(torch.Generator().manual_seed(0), seeded=0)
@@ -627,7 +672,7 @@ def test_teacher_resolves_self_contact_at_a_deep_knee_bend(pca):
         far = ~torch.from_numpy(setup.free)
         assert (teacher - lbs)[:, far].abs().max() == 0
     counts["LBS"] = int(measures.self_intersections(lbs)[0])
-    assert counts["LBS"] > counts[False] > 2 * counts[True], counts
+    assert 2 * counts[True] < min(counts["LBS"], counts[False]), counts
 
 
 def test_bending_angles_match_panoman(pca):
@@ -709,12 +754,16 @@ def test_shipped_weights_keep_anny_limbs_at_the_tpose(procedural):
     arms = [k for k, (name, _) in enumerate(SEGMENTS) if "Arm" in name]
     phen = torch.rand(6, layer.identity.num_params, generator=keyed_generator("correctives-anny-test", 0))
     worst = []
+
+    def rest_of(p):  # noqa: ANN001, ANN202
+        return p.rest_vertices, p.rest_rotations, p.rest_joints
+
     for c in phen:
         p = layer.prepare_identity(c[None])
         rest = tc.rest_pose(layer, p)
         pose = torch.stack([torch.zeros_like(rest), 0.5 * rest])
         off = (
-            measures.segment_volumes(p.rest_vertices, p.rest_rotations, p.rest_joints, o.vertices, o.transforms)[:, arms]
+            measures.segment_volumes(*rest_of(p), o.vertices, o.transforms)[:, arms]
             for o in (layer.pose(p, pose), layer.pose(p, pose, correctives=False))
         )
         corr, lbs = ((v - 1).abs() for v in off)

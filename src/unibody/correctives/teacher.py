@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["Arap", "Contact", "teacher_region"]
+__all__ = ["Arap", "Contact", "bone_anchors", "teacher_region"]
 
 
 def _memberships(rest: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -56,6 +56,9 @@ class Arap:
         faces: (F, 3) int faces.
         free: (V,) bool, the vertices to relax (the joint regions).
         iterations: local/global rounds.
+        volumes: per limb segment, (Fs, 3) faces whose cone volume each global step keeps.
+        anchor: (V,) >= 0, each vertex's tie to where it starts (its skinned position), in units
+            of the mean Laplacian diagonal: flesh held by one bone stays on that bone.
     """
 
     def __init__(
@@ -66,6 +69,7 @@ class Arap:
         *,
         iterations: int = 8,
         volumes: tuple[np.ndarray, ...] = (),
+        anchor: np.ndarray | None = None,
     ) -> None:
         import scipy.sparse as sp
 
@@ -80,7 +84,13 @@ class Arap:
         lap = sp.coo_matrix((np.r_[-self.w, -self.w], (np.r_[i, j], np.r_[j, i])), shape=(v, v)).tocsr()
         lap = lap - sp.diags(np.asarray(lap.sum(1)).ravel())
         self.free, self.fixed = np.flatnonzero(free), np.flatnonzero(~free)
-        self._a = a = lap[self.free][:, self.free].tocsr()
+        self._lap = a = lap[self.free][:, self.free].tocsr()
+        self._scale = float(np.abs(a.diagonal()).mean())  # the unit of the anchors' and contacts' pulls
+        self._anchor = None
+        if anchor is not None and np.any(anchor[self.free] > 0):
+            self._anchor = np.asarray(anchor, dtype=np.float64)[self.free] * self._scale
+            a = (a + sp.diags(self._anchor)).tocsr()
+        self._a = a
         self.l_fh = lap[self.free][:, self.fixed].tocsr()
         self._solver = _factor(a)
         self.e0 = rest[i] - rest[j]  # (M, 3)
@@ -152,17 +162,46 @@ class Arap:
         if self.volumes and apex is not None:
             apex_t = torch.as_tensor(apex, dtype=torch.float64)
             vol = (apex_t, torch.as_tensor(target, dtype=torch.float64).expand(x.shape[0], len(self.volumes)))
+        if self._anchor is not None and contact is not None:  # each mesh its own anchors: one at a time
+            for b in range(x.shape[0]):
+                self._relax_one(x[b : b + 1], None if vol is None else (vol[0][b : b + 1], vol[1][b : b + 1]), contact)
+            return x.numpy()
+        tie = None if self._anchor is None else self._anchor[:, None] * self._columns(x)
         for _ in range(self.iterations):
-            self._round(x, self._solver, vol)
+            self._round(x, self._solver, vol, tie=tie)
         if contact is not None:
             for b in range(x.shape[0]):
                 one = None if vol is None else (vol[0][b : b + 1], vol[1][b : b + 1])
                 self._resolve_contacts(x[b : b + 1], one, contact)
         return x.numpy()
 
-    def _round(self, x: torch.Tensor, solver, vol, pull: tuple[np.ndarray, np.ndarray, float] | None = None) -> None:  # noqa: ANN001
+    def _columns(self, x: torch.Tensor) -> np.ndarray:
+        """(nf, 3B) the free vertices of meshes x (B, V, 3), the layout of the global step."""
+        return x[:, self.free].permute(1, 0, 2).reshape(len(self.free), 3 * x.shape[0]).numpy()
+
+    def _released(self, ids: np.ndarray, contact: Contact) -> np.ndarray:
+        """(nf,) the anchors with those within ``contact.release`` rings of vertices ``ids`` dropped."""
+        near = np.zeros(self.num_vertices, bool)
+        near[ids] = True
+        return self._anchor * ~_grow(near, self.edges, contact.release)[self.free]
+
+    def _relax_one(self, x: torch.Tensor, vol, contact: Contact) -> None:  # noqa: ANN001
+        """Relax one mesh (1, V, 3) in place, anchored, where flesh pressed into another part at the
+        start (and around it) is free to leave its bone; then its contacts resolved."""
+        import scipy.sparse as sp
+
+        start = self._columns(x)
+        found = contact.targets(x[0].numpy(), self.free)
+        anchor = self._released(np.fromiter(found, dtype=np.int64), contact) if found else self._anchor
+        solver = _factor((self._lap + sp.diags(anchor)).tocsr()) if found else self._solver
+        for _ in range(self.iterations):
+            self._round(x, solver, vol, tie=anchor[:, None] * start)
+        self._resolve_contacts(x, vol, contact, (start, np.fromiter(found, dtype=np.int64)))
+
+    def _round(self, x: torch.Tensor, solver, vol, pull=None, tie=None) -> None:  # noqa: ANN001
         """One local/global round on (B, V, 3) meshes x, in place; ``pull``: (slots, (n, 3) targets,
-        weight) of free vertices drawn to targets (B = 1; ``solver`` factors the pulled system)."""
+        weight) of free vertices drawn to targets (B = 1; ``solver`` factors the pulled system);
+        ``tie``: (nf, 3B) the anchors' pull toward the start (the factored matrix holds the anchors)."""
         b, v = x.shape[:2]
         i, j = (torch.from_numpy(t) for t in self.edges.T)
         cell = torch.from_numpy(self.cell)
@@ -180,6 +219,8 @@ class Arap:
         rhs_f = rhs[:, self.free].permute(1, 0, 2).reshape(nf, 3 * b).numpy()
         fixed = x[:, self.fixed].permute(1, 0, 2).reshape(len(self.fixed), 3 * b).numpy()
         rhs_f = np.ascontiguousarray(rhs_f - self.l_fh @ fixed)
+        if tie is not None:
+            rhs_f += tie
         if pull is not None:
             rhs_f[pull[0]] += pull[2] * pull[1]
         out = np.zeros_like(rhs_f)
@@ -188,23 +229,29 @@ class Arap:
             out = self._volume_step(x, out, *vol, solver=solver)
         x[:, self.free] = torch.from_numpy(out).reshape(nf, b, 3).permute(1, 0, 2)
 
-    def _resolve_contacts(self, x: torch.Tensor, vol, contact: Contact) -> None:  # noqa: ANN001
+    def _resolve_contacts(self, x: torch.Tensor, vol, contact: Contact, anchored=None) -> None:  # noqa: ANN001
         """Relax one mesh (1, V, 3) again, in place, with its penetrating free vertices pulled out
-        (each round adds the newly found ones; every pull stays to the end)."""
+        (each round adds the newly found ones; every pull stays to the end). ``anchored``: (the
+        start's :meth:`_columns`, ids of the vertices found inside at the start) when anchored."""
         import scipy.sparse as sp
 
         pulls: dict[int, np.ndarray] = {}
-        weight = contact.weight * float(np.abs(self._a.diagonal()).mean())
+        weight = contact.weight * self._scale
         for _ in range(contact.rounds):
             found = contact.targets(x[0].numpy(), self.free)
             if not found:
                 break
             pulls.update(found)
-            slots = self._slot[np.fromiter(pulls, dtype=np.int64)]
+            ids = np.fromiter(pulls, dtype=np.int64)
+            slots = self._slot[ids]
             targets = np.stack(list(pulls.values()))
-            solver = _factor((self._a + sp.diags(np.bincount(slots, minlength=len(self.free)) * weight)).tocsr())
+            a, tie = self._a, None
+            if anchored is not None:  # every vertex found inside so far, and the rings around it, leaves its bone
+                anchor = self._released(np.r_[anchored[1], ids], contact)
+                a, tie = self._lap + sp.diags(anchor), anchor[:, None] * anchored[0]
+            solver = _factor((a + sp.diags(np.bincount(slots, minlength=len(self.free)) * weight)).tocsr())
             for _ in range(contact.iterations):
-                self._round(x, solver, vol, (slots, targets, weight))
+                self._round(x, solver, vol, (slots, targets, weight), tie)
 
 
 def _factor(a):  # noqa: ANN001, ANN202 (a scipy CSR matrix -> a cholespy solver)
@@ -212,6 +259,10 @@ def _factor(a):  # noqa: ANN001, ANN202 (a scipy CSR matrix -> a cholespy solver
     from cholespy import CholeskySolverD, MatrixType
 
     return CholeskySolverD(a.shape[0], a.indptr.astype(np.int32), a.indices.astype(np.int32), a.data, MatrixType.CSR)
+
+
+RELEASE = 8
+"""Rings around the vertices in contact whose tie to their bone (:func:`bone_anchors`) the contact rounds drop."""
 
 
 class Contact:
@@ -228,7 +279,10 @@ class Contact:
     Args:
         faces: (F, 3) int64; labels: (V,) int part of each vertex (its dominant joint);
         rounds: detect-and-relax rounds; iterations: local/global rounds after each;
-        weight: the pull, in units of the mean Laplacian diagonal; offset, margin: m.
+        weight: the pull, in units of the mean Laplacian diagonal; offset, margin: m;
+        release: rings around the vertices found inside whose anchors (:class:`Arap`'s ``anchor``)
+            the contact rounds drop: soft tissue pressed together leaves its bone, the rest of the
+            limb stays on it.
     """
 
     def __init__(
@@ -241,9 +295,11 @@ class Contact:
         weight: float = 1.0,
         offset: float = 1e-3,
         margin: float = 2e-3,
+        release: int = RELEASE,
     ) -> None:
         self.faces, self.labels = np.ascontiguousarray(faces, dtype=np.int64), labels
         self.rounds, self.iterations, self.weight, self.offset, self.margin = rounds, iterations, weight, offset, margin
+        self.release = release
         self._face_labels = labels[self.faces]
 
     def targets(self, x: np.ndarray, free: np.ndarray) -> dict[int, np.ndarray]:
@@ -277,6 +333,23 @@ STRESSED_JOINTS: tuple[str, ...] = tuple(
     s + j for s in ("Left", "Right") for j in ("Arm", "ForeArm", "Hand", "Leg", "Shin", "Foot")
 )
 """Joints whose neighbourhood (with their parents) the teacher relaxes and the metrics measure."""
+
+
+def bone_anchors(weights: np.ndarray, strength: float, *, onset: float = 0.5) -> np.ndarray:
+    """(V,) each vertex's tie to its skinned position: ``strength * r^2``, ``r`` the share of its
+    dominant bone's weight above ``onset``, rescaled to [0, 1].
+
+    Flesh that one bone carries stays on that bone; where bones blend (``r`` near 0) the surface
+    is free to relax. Without it the relaxation may slide a whole free limb off its bones: held
+    only at the trunk and the hand, the upper arm's flesh of an Anny body at the T-pose sagged
+    45 mm below its humerus (ARAP pulling the shoulder toward its rest, arms-down shape).
+
+    Args:
+        weights: (V, J) dense skinning weights; strength: the tie of a one-bone vertex, in units
+            of the mean Laplacian diagonal (:class:`Arap`'s ``anchor``).
+    """
+    r = np.clip((weights.max(1) - onset) / (1.0 - onset), 0.0, 1.0)
+    return strength * r**2
 
 
 def _grow(mask: np.ndarray, edges: np.ndarray, rings: int) -> np.ndarray:

@@ -19,7 +19,7 @@ import torch
 
 from .metrics import SurfaceMeasures, cone_volume
 from .model import size_of
-from .teacher import Arap, Contact, teacher_region
+from .teacher import Arap, Contact, bone_anchors, teacher_region
 
 __all__ = [
     "MAX_TARGET_M",
@@ -32,6 +32,9 @@ __all__ = [
 ]
 
 MAX_TARGET_M = 0.15
+ANCHOR = 0.01
+"""The teacher's default tie of one-bone flesh to its bone (:func:`~.teacher.bone_anchors`; 0: none,
+the teacher of the weights before 2026-11-28's second set)."""
 """Largest rest-space displacement kept as a target (m)."""
 
 
@@ -63,6 +66,7 @@ class TeacherSetup:
         measures: with ``volume``, the :class:`~.metrics.SurfaceMeasures` whose limb segments
             (upper arms, forearms, thighs, shins) keep their rest volume in the teacher.
         contact: with ``contact``, the teacher's :class:`~.teacher.Contact` (self-contact resolved).
+        anchor: (V,) each vertex's tie to its skinned position (:func:`~.teacher.bone_anchors`), or None.
     """
 
     def __init__(  # noqa: D107
@@ -73,6 +77,7 @@ class TeacherSetup:
         twist_start: bool = True,
         volume: bool = True,
         contact: bool = True,
+        anchor: float = ANCHOR,
     ) -> None:
         self.faces = layer.faces.cpu().numpy().astype(np.int64)
         self.weights = layer.skinning.dense().detach().cpu().double().numpy()
@@ -86,6 +91,7 @@ class TeacherSetup:
         self.measures = SurfaceMeasures.from_layer(layer) if volume else None
         # Self-contact: penetrating free vertices pulled out (parts: each vertex's dominant joint), or None.
         self.contact = Contact(self.faces, self.weights.argmax(1)) if contact else None
+        self.anchor = bone_anchors(self.weights, anchor) if anchor > 0 else None
         self.twist = None
         if twist_start:
             from ..body import BodyLayer
@@ -125,7 +131,7 @@ def teacher_targets(
             target = torch.stack(
                 [cone_volume(rest64, torch.from_numpy(f), apex0[:, k])[0] for k, f in enumerate(volumes)]
             )
-        arap = Arap(rest, setup.faces, setup.free, iterations=iterations, volumes=volumes)
+        arap = Arap(rest, setup.faces, setup.free, iterations=iterations, volumes=volumes, anchor=setup.anchor)
         start = lbs
         if setup.twist is not None:  # start the free vertices from LBS + twist joints: no candy wrapper to undo
             start = lbs.clone()
