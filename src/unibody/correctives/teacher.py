@@ -5,9 +5,10 @@ Plain LBS shears and collapses the surface where the skinning weights blend two 
 inside of a bent elbow or knee, a raised shoulder, a twisted forearm), and lets a bent limb sink
 into itself. The teacher keeps LBS where one bone dominates and relaxes the joint regions
 (:func:`teacher_region`) toward the rest shape's local geometry: the spokes-and-rims
-as-rigid-as-possible energy (:class:`Arap`) with the LBS result as start and as boundary, each
-limb segment held at its rest volume (a linearised constraint in every global step), then the
-free vertices found inside the body pulled back out (:class:`Contact`). It is measured against
+as-rigid-as-possible energy (:class:`Arap`) with the LBS result as start and as boundary, flesh
+that one bone carries tied to that bone (:func:`bone_anchors`) except where it is pressed into
+another part, each limb segment held at its rest volume (a linearised constraint in every global
+step), then the free vertices found inside the body pulled back out (:class:`Contact`). It is measured against
 LBS by :mod:`.metrics` (``benchmarks/correctives.py``).
 """
 
@@ -342,7 +343,7 @@ def bone_anchors(weights: np.ndarray, strength: float, *, onset: float = 0.5) ->
     Flesh that one bone carries stays on that bone; where bones blend (``r`` near 0) the surface
     is free to relax. Without it the relaxation may slide a whole free limb off its bones: held
     only at the trunk and the hand, the upper arm's flesh of an Anny body at the T-pose sagged
-    45 mm below its humerus (ARAP pulling the shoulder toward its rest, arms-down shape).
+    47 mm below its humerus (ARAP pulling the shoulder toward its rest, arms-down shape).
 
     Args:
         weights: (V, J) dense skinning weights; strength: the tie of a one-bone vertex, in units
