@@ -34,7 +34,7 @@ import torch
 from PIL import Image, ImageDraw
 
 from unibody import BodyLayer
-from unibody.correctives.metrics import SEGMENTS, SurfaceMeasures, limb_profile
+from unibody.correctives.metrics import SEGMENTS, SurfaceMeasures, limb_profile, one_bone
 from unibody.correctives.model import Correctives
 from unibody.correctives.stress import forearm_twist_pose, stress_poses
 from unibody.correctives.training import TeacherSetup, draw_identities, teacher_targets
@@ -244,14 +244,14 @@ def backends(model: Correctives, args: argparse.Namespace, n: int = 8, procedura
         )
     # How far the correctives move the arms' one-bone flesh (skinning weight >= 0.99) off its bone there
     w = layer.skinning.dense().detach().double().numpy()
-    names = list(layer.joint_names)
-    moved = {j: [] for j in ("LeftArm", "RightArm", "LeftForeArm", "RightForeArm")}
+    arms = ("LeftArm", "RightArm", "LeftForeArm", "RightForeArm")
+    carried = {j: torch.from_numpy(one_bone(w, layer.joint_names.index(j))) for j in arms}
+    moved = {j: [] for j in arms}
     for c in phen:
         p = layer.prepare_identity(c[None])
         on, off = (layer.pose(p, torch.zeros(1, 77, 3), correctives=k).vertices[0] for k in (True, False))
         for j, vals in moved.items():
-            one = torch.from_numpy((w.argmax(1) == names.index(j)) & (w.max(1) >= 0.99))
-            vals.append(float((on - off)[one].norm(dim=-1).mean()) * 1e3)
+            vals.append(float((on - off)[carried[j]].norm(dim=-1).mean()) * 1e3)
     text = ", ".join(f"{j} {min(v):.1f}-{max(v):.1f}" for j, v in moved.items())
     print(f"Anny T-pose, one-bone flesh of the arms moved off LBS by the correctives (mean per segment, mm): {text}")
 
@@ -348,7 +348,7 @@ def quality(layer: BodyLayer, twist: BodyLayer, args: argparse.Namespace) -> Non
     setup = TeacherSetup(layer, volume=volume, contact=contact, anchor=anchor)
     # Flesh one bone carries (weight >= 0.99) inside the relaxed region: how far each method moves it off
     # where its rig's skinning puts it (LBS: 0 by construction; "MLP + twist" against "LBS + twist").
-    one_bone = torch.from_numpy((measures.weights.max(1) >= 0.99) & setup.free)
+    carried = torch.from_numpy(one_bone(measures.weights) & setup.free)
     drift, skinned = {m: [] for m in METHODS[2:]}, {}
     coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-benchmark", args.seed))
     poses, labels = stress_poses(keyed_generator("correctives-stress", args.seed))
@@ -369,7 +369,7 @@ def quality(layer: BodyLayer, twist: BodyLayer, args: argparse.Namespace) -> Non
                 skinned[m] = out.vertices
             else:
                 lbs = skinned["LBS + twist" if "twist" in m else "LBS"]
-                drift[m].append((verts - lbs)[:, one_bone].norm(dim=-1).mean(-1) * 1e3)
+                drift[m].append((verts - lbs)[:, carried].norm(dim=-1).mean(-1) * 1e3)
             s, a = measures.distortion(prepared.rest_vertices, verts)
             acc[m]["strain"].append(s.flatten())
             acc[m]["dihedral"].append(a.flatten())
@@ -421,7 +421,7 @@ def quality(layer: BodyLayer, twist: BodyLayer, args: argparse.Namespace) -> Non
         print(f"  {m:12s} {float((vol < 0.9).float().mean()):6.2%}; {float(vol.min()):.1%} {SEGMENTS[k][0]}, "
               f"{labels[p]}, identity {i}")  # fmt: skip
     print(
-        f"\none-bone flesh moved off its bone ({int(one_bone.sum())} vertices of the relaxed region with a "
+        f"\none-bone flesh moved off its bone ({int(carried.sum())} vertices of the relaxed region with a "
         "skinning weight >= 0.99; mean |x - the rig's LBS| per mesh), mm: mean / P95 / max over meshes"
     )
     for m, d in drift.items():

@@ -11,7 +11,7 @@ import torch
 from conftest import chain_rig
 from unibody import BodyLayer
 from unibody.body import PreparedIdentity
-from unibody.correctives.metrics import SurfaceMeasures, cone_volume
+from unibody.correctives.metrics import SurfaceMeasures, cone_volume, one_bone
 from unibody.correctives.model import Correctives, default_weights_path
 from unibody.correctives.stress import FAMILIES, stress_poses
 from unibody.correctives.teacher import Arap, bone_anchors
@@ -581,9 +581,12 @@ def test_arap_anchors_keep_rigid_motions_and_hold_a_sliding_limb():
 
 
 def test_bone_anchors_follow_the_dominant_weight():
-    """A vertex one bone carries gets the full tie, one shared half and half gets none."""
-    w = np.array([[1.0, 0.0], [0.5, 0.5], [0.75, 0.25], [0.2, 0.8]])
-    assert np.allclose(bone_anchors(w, 0.02), 0.02 * np.array([1.0, 0.0, 0.25, 0.36]))
+    """A vertex one bone carries gets the full tie, one shared half and half gets none; ``one_bone``
+    picks the first, of any joint or of one."""
+    w = np.array([[1.0, 0.0], [0.5, 0.5], [0.75, 0.25], [0.2, 0.8], [0.0, 1.0]])
+    assert np.allclose(bone_anchors(w, 0.02), 0.02 * np.array([1.0, 0.0, 0.25, 0.36, 1.0]))
+    assert one_bone(w).tolist() == [True, False, False, False, True]
+    assert one_bone(w, 1).tolist() == [False, False, False, False, True]
 
 
 def test_teacher_keeps_anny_arm_flesh_on_its_bones_at_the_tpose():
@@ -595,11 +598,9 @@ def test_teacher_keeps_anny_arm_flesh_on_its_bones_at_the_tpose():
     p = layer.prepare_identity(torch.full((1, layer.identity.num_params), 0.5))
     setup = TeacherSetup(layer)
     lbs, teacher, _ = teacher_targets(layer, p, torch.zeros(1, 77, 3), setup)
-    w = setup.weights
-    names = list(layer.joint_names)
     for joint in ("LeftArm", "LeftForeArm", "RightArm", "RightForeArm"):
-        one_bone = (w.argmax(1) == names.index(joint)) & (w.max(1) >= 0.99) & setup.free
-        drift = float((teacher - lbs)[0, one_bone].norm(dim=-1).mean())
+        carried = one_bone(setup.weights, layer.joint_names.index(joint)) & setup.free
+        drift = float((teacher - lbs)[0, carried].norm(dim=-1).mean())
         assert drift < 0.015, (joint, drift)
 
 
@@ -754,16 +755,13 @@ def test_shipped_weights_keep_anny_limbs_at_the_tpose(procedural):
     arms = [k for k, (name, _) in enumerate(SEGMENTS) if "Arm" in name]
     phen = torch.rand(6, layer.identity.num_params, generator=keyed_generator("correctives-anny-test", 0))
     worst = []
-
-    def rest_of(p):  # noqa: ANN001, ANN202
-        return p.rest_vertices, p.rest_rotations, p.rest_joints
-
     for c in phen:
         p = layer.prepare_identity(c[None])
         rest = tc.rest_pose(layer, p)
         pose = torch.stack([torch.zeros_like(rest), 0.5 * rest])
+        at_rest = (p.rest_vertices, p.rest_rotations, p.rest_joints)
         off = (
-            measures.segment_volumes(*rest_of(p), o.vertices, o.transforms)[:, arms]
+            measures.segment_volumes(*at_rest, o.vertices, o.transforms)[:, arms]
             for o in (layer.pose(p, pose), layer.pose(p, pose, correctives=False))
         )
         corr, lbs = ((v - 1).abs() for v in off)
@@ -780,14 +778,13 @@ def test_shipped_weights_keep_anny_arm_flesh_on_its_bones_at_the_tpose(procedura
     from unibody.synth.poses import keyed_generator
 
     layer = BodyLayer.from_anny(procedural=procedural, correctives=True)
-    w = layer.skinning.dense()
-    names = list(layer.joint_names)
+    w = layer.skinning.dense().numpy()
     phen = torch.rand(6, layer.identity.num_params, generator=keyed_generator("correctives-anny-test", 1))
     worst = 0.0
     for c in phen:
         p = layer.prepare_identity(c[None])
         on, off = (layer.pose(p, torch.zeros(1, 77, 3), correctives=k).vertices[0] for k in (True, False))
         for joint in ("LeftArm", "RightArm", "LeftForeArm", "RightForeArm"):
-            one_bone = (w.argmax(1) == names.index(joint)) & (w.max(1).values >= 0.99)
-            worst = max(worst, float((on - off)[one_bone].norm(dim=-1).mean()))
+            carried = torch.from_numpy(one_bone(w, layer.joint_names.index(joint)))
+            worst = max(worst, float((on - off)[carried].norm(dim=-1).mean()))
     assert worst < 0.012, worst

@@ -25,7 +25,15 @@ import torch
 from ..geometry.intersect import intersecting_pairs
 from .teacher import STRESSED_JOINTS, teacher_region
 
-__all__ = ["STRESSED_JOINTS", "SEGMENTS", "SurfaceMeasures", "cone_volume", "cross_section_area", "limb_profile"]
+__all__ = [
+    "STRESSED_JOINTS",
+    "SEGMENTS",
+    "SurfaceMeasures",
+    "cone_volume",
+    "cross_section_area",
+    "limb_profile",
+    "one_bone",
+]
 
 SEGMENTS: tuple[tuple[str, str], ...] = tuple(
     (s + a, s + b)
@@ -77,6 +85,17 @@ def limb_profile(verts: np.ndarray, faces: np.ndarray, a: np.ndarray, b: np.ndar
     """Cross-section areas (m^2) at bone parameters ``ts`` between joint positions a and b."""
     axis = (b - a) / np.linalg.norm(b - a)
     return np.array([cross_section_area(verts, faces, a + t * (b - a), axis) for t in ts])
+
+
+def one_bone(weights: np.ndarray, joint: int | None = None, *, threshold: float = 0.99) -> np.ndarray:
+    """(V,) bool: the vertices one bone carries (a skinning weight >= ``threshold``), or only those
+    ``joint`` carries: where correctives should leave the flesh where its bone puts it.
+
+    Args:
+        weights: (V, J) dense skinning weights (numpy).
+    """
+    out = weights.max(1) >= threshold
+    return out if joint is None else out & (weights.argmax(1) == joint)
 
 
 def cone_volume(x: torch.Tensor, faces: torch.Tensor, apex: torch.Tensor) -> torch.Tensor:

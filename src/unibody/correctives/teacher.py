@@ -192,12 +192,12 @@ class Arap:
         import scipy.sparse as sp
 
         start = self._columns(x)
-        found = contact.targets(x[0].numpy(), self.free)
-        anchor = self._released(np.fromiter(found, dtype=np.int64), contact) if found else self._anchor
-        solver = _factor((self._lap + sp.diags(anchor)).tocsr()) if found else self._solver
+        inside = np.fromiter(contact.targets(x[0].numpy(), self.free), dtype=np.int64)
+        anchor = self._released(inside, contact) if len(inside) else self._anchor
+        solver = _factor((self._lap + sp.diags(anchor)).tocsr()) if len(inside) else self._solver
         for _ in range(self.iterations):
             self._round(x, solver, vol, tie=anchor[:, None] * start)
-        self._resolve_contacts(x, vol, contact, (start, np.fromiter(found, dtype=np.int64)))
+        self._resolve_contacts(x, vol, contact, (start, inside))
 
     def _round(self, x: torch.Tensor, solver, vol, pull=None, tie=None) -> None:  # noqa: ANN001
         """One local/global round on (B, V, 3) meshes x, in place; ``pull``: (slots, (n, 3) targets,

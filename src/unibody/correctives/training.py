@@ -22,6 +22,7 @@ from .model import size_of
 from .teacher import Arap, Contact, bone_anchors, teacher_region
 
 __all__ = [
+    "ANCHOR",
     "MAX_TARGET_M",
     "blended_rotations",
     "draw_identities",
@@ -32,10 +33,10 @@ __all__ = [
 ]
 
 MAX_TARGET_M = 0.15
+"""Largest rest-space displacement kept as a target (m)."""
 ANCHOR = 0.01
 """The teacher's default tie of one-bone flesh to its bone (:func:`~.teacher.bone_anchors`; 0: none,
 the teacher of the weights before 2026-11-28's second set)."""
-"""Largest rest-space displacement kept as a target (m)."""
 
 
 def draw_identities(layer, n: int, generator: torch.Generator, *, components: int = 16) -> torch.Tensor:  # noqa: ANN001
