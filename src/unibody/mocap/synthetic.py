@@ -26,6 +26,9 @@ markers from a :class:`~unibody.mocap.layout.MarkerLayout`. Per sample:
   inside 39): the markers outside the subset are absent;
 - then :func:`~unibody.mocap.corrupt.corrupt_frames`: occlusions, ghost points, permutation.
 
+:meth:`SyntheticMocap.take` makes one whole take instead: one actor and one placement for all
+the frames of a motion (what a lab's session is), per frame only noise and soft tissue.
+
 Only the marker vertices are skinned (a few hundred of the 18,056), so a batch of 256
 frames takes milliseconds: data is made on the fly, never stored.
 
@@ -144,6 +147,11 @@ class SyntheticConfig:
             to behind the ears (back markers 8-19 cm apart). Empty: the ``loose`` radius.
         jitter_cos: a candidate vertex's rest normal has a cosine of at least this with the
             layout vertex's normal (jitter stays on the same side of a limb).
+        side_margin: m, the markers of a left/right pair (``LBHD``/``RBHD``, ...) stay on their own
+            side, at least this far from the sagittal plane of the mean rest mesh (their labels
+            name the side: before this rule the back-head markers' 5 cm jitter put each on the
+            other side in a fifth of the samples, a crossed pair labelled as drawn). Pairs
+            whose layout vertices are nearer the plane keep their rules.
         distance: m, marker-to-skin distance range.
         fitted, distance_jitter: the layout's placement is the session's own (``unibody mocap
             layout``): ``segments``, ``loose``, ``bands`` and sticks are ignored, every marker
@@ -212,6 +220,7 @@ class SyntheticConfig:
     bands: tuple[tuple[str, float, float], ...] = ()
     band_height: float = 0.025
     jitter_cos: float = 0.5
+    side_margin: float = 0.02
     distance: tuple[float, float] = (0.006, 0.02)
     fitted: bool = False
     distance_jitter: float = 0.005
@@ -252,6 +261,12 @@ def mirror_pose(pose: torch.Tensor, joint_names: tuple[str, ...]) -> torch.Tenso
     joint takes its left/right partner's rotation, reflected ((x, y, z) -> (x, -y, -z));
     ``joint_names`` are the 78 public joints (Root first), as ``BodyLayer.joint_names``."""
     return mirror_rotation(pose[:, partner_joints(tuple(joint_names))[1:] - 1])
+
+
+def _pairs(labels: tuple[str, ...]) -> list[tuple[int, int]]:
+    """(left, right) indices of the labels that come in left/right pairs (``L...`` and ``R...``)."""
+    index = {x: i for i, x in enumerate(labels)}
+    return [(i, index["R" + x[1:]]) for i, x in enumerate(labels) if x[0] == "L" and "R" + x[1:] in index]
 
 
 def _true_first(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -360,6 +375,12 @@ class SyntheticMocap:
                     away = mean[:, 0] * torch.sign(x0)
                     level = (mean[:, 1] - mean[layout.vertices[i], 1]).abs() <= config.lateral_band
                     near[i] = (away >= lo) & (away <= hi) & level & same_side[i]
+            # a left marker stays on the left: a pair's two markers never meet on or cross the midline
+            x0 = mean[layout.vertices, 0]
+            for i, j in _pairs(layout.labels):
+                if min(float(x0[i].abs()), float(x0[j].abs())) >= config.side_margin:
+                    for k in (i, j):
+                        near[k] &= torch.sign(x0[k]) * mean[:, 0] >= config.side_margin
             near[torch.arange(len(layout)), layout.vertices] = True
             lo, hi = config.extra_distance
             nearest = d.min(0).values
@@ -434,12 +455,15 @@ class SyntheticMocap:
         if cfg.motion_noise > 0:
             frame = frame + cfg.motion_noise * torch.randn(frame.shape, generator=generator)
         heading = 2 * math.pi * torch.rand(batch, 1, generator=generator)
+        return torch.where(use[:, None, None], self._turned(frame, heading), pose)
+
+    def _turned(self, frame: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
+        """(B, 77, 3) poses turned by ``heading`` (B, 1) rad about the vertical through the Hips."""
         turn = axis_angle_to_matrix(heading * torch.tensor([0.0, 1.0, 0.0]))
         # the Hips' world rotation is O_root^T R O_hips (R: its pose entry); turn it: R -> O_root turn O_root^T R
         o = self.layer.tpose_orient[0]
         hips = matrix_to_axis_angle(o @ turn @ o.T @ axis_angle_to_matrix(frame[:, 0]))
-        frame = torch.cat([hips[:, None], frame[:, 1:]], dim=1)
-        return torch.where(use[:, None, None], frame, pose)
+        return torch.cat([hips[:, None], frame[:, 1:]], dim=1)
 
     def markers(self, batch: int, generator: torch.Generator) -> torch.Tensor:
         """Clean markers (B, M, 3), metres, Y up; NaN for markers outside a drawn subset."""
@@ -477,12 +501,7 @@ class SyntheticMocap:
                 pick = self._clusters(pick, generator)
             u = torch.cat([u, self.extra_pool[pick]], dim=1)
         k = u.shape[1]
-        x = self.rest[ident[:, None], u]  # (B, K, 3)
-        n = self.normals[ident[:, None], u]
-        a = torch.einsum("bkj,bjrc->bkrc", self.weights[u], mats)  # blended transforms (B, K, 3, 4)
-        posed = (a[..., :3] @ x[..., None]).squeeze(-1) + a[..., 3]
-        normal = (a[..., :3] @ n[..., None]).squeeze(-1)
-        normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        posed, normal = self._skinned(ident, u, mats)
         lo, hi = cfg.distance
         dist = lo + (hi - lo) * torch.rand(batch, k, 1, generator=generator)
         if cfg.fitted:
@@ -516,6 +535,68 @@ class SyntheticMocap:
             count = torch.randint(extras + 1, (batch, 1), generator=generator)
             extra = torch.where((torch.arange(extras) >= count)[..., None], float("nan"), extra)
         return out, extra
+
+    def _skinned(self, ident: torch.Tensor, u: torch.Tensor, mats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Skinned places and unit normals (B, K, 3) of vertices ``u`` (B, K; into :attr:`used`) of
+        pool bodies ``ident`` (B,) under skinning transforms ``mats`` (B, J, 3, 4)."""
+        x = self.rest[ident[:, None], u]  # (B, K, 3)
+        n = self.normals[ident[:, None], u]
+        a = torch.einsum("bkj,bjrc->bkrc", self.weights[u], mats)  # blended transforms (B, K, 3, 4)
+        posed = (a[..., :3] @ x[..., None]).squeeze(-1) + a[..., 3]
+        normal = (a[..., :3] @ n[..., None]).squeeze(-1)
+        return posed, normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+
+    def take(self, pose: torch.Tensor, generator: torch.Generator, transl: torch.Tensor | None = None) -> torch.Tensor:
+        """Clean markers (T, M, 3) of one take (Y up, m; NaN for markers outside a drawn subset).
+
+        A session keeps its actor and its markers: one body of the pool, one placement, marker
+        distance, wrist-bar draw, suit, mirrored back marker, calibration scale (about the lab's
+        origin), label subset and noise level for the whole take, drawn as :meth:`sample` draws
+        them per sample; per frame only the noise and the soft tissue. The motion ``pose``
+        (T, 77, 3) (and its Hips' path ``transl`` (T, 3), else the origin) is turned to a random
+        heading about the vertical, as is. ``motion_mirror`` and ``motion_noise`` are not applied
+        (the take is the motion given).
+        """
+        check_shape(pose, "T 77 3", name="pose")
+        t, m, cfg, g = len(pose), len(self.layout), self.config, generator
+        if transl is not None:
+            check_shape(transl, f"{t} 3", name="transl")
+        ident = torch.randint(self.rest.shape[0], (1,), generator=g)
+        heading = 2 * math.pi * torch.rand(1, 1, generator=g)
+        frames = self._turned(pose.to(torch.float32), heading.expand(t, 1))
+        turn = axis_angle_to_matrix(heading[0] * torch.tensor([0.0, 1.0, 0.0]))
+        path = torch.zeros(t, 3) if transl is None else transl.to(torch.float32) @ turn.T
+        prepared = PreparedIdentity(
+            self.rest[ident], self.rest_rotations[ident], self.rest_joints[ident], self.offsets[ident]
+        )
+        _, _, mats = self.layer.skin_transforms(prepared, self.layer.local_rotations(frames), path)
+        u = self.candidates.gather(1, (torch.rand(1, m, generator=g) * self.num_candidates).long().T).T
+        if self.mirrored.any():
+            u = torch.where((torch.rand(1, 1, generator=g) < cfg.mirror_prob) & self.mirrored, self.mirror_used[u], u)
+        lo, hi = cfg.distance
+        dist = lo + (hi - lo) * torch.rand(1, m, 1, generator=g)
+        if cfg.fitted:
+            dj = cfg.distance_jitter * (2 * torch.rand(1, m, 1, generator=g) - 1)
+            dist = (self.layout.distance[:, None] + dj).clamp_min(0.0)
+        if self.stick.any():
+            slo, shi = cfg.stick_distance
+            stick = slo + (shi - slo) * torch.rand(1, m, 1, generator=g)
+            on = (torch.rand(1, 1, 1, generator=g) < cfg.stick_prob) & self.stick[:, None]
+            dist = torch.where(on, stick, dist)
+        if cfg.suit[1] > 0:
+            dist = dist + cfg.suit[0] + (cfg.suit[1] - cfg.suit[0]) * torch.rand(1, 1, 1, generator=g)
+        sigma = cfg.noise[0] + (cfg.noise[1] - cfg.noise[0]) * torch.rand((), generator=g)
+        posed, normal = self._skinned(ident.expand(t), u.expand(t, m), mats)
+        out = posed + normal * dist + sigma * torch.randn(t, m, 3, generator=g)
+        if cfg.soft_tissue > 0 and self.soft.any():
+            std = cfg.soft_tissue * torch.rand((), generator=g)
+            out = out + std * torch.randn(t, m, 3, generator=g) * self.soft[:, None]
+        if cfg.scale != (1.0, 1.0):
+            out = out * (cfg.scale[0] + (cfg.scale[1] - cfg.scale[0]) * torch.rand((), generator=g))
+        if self.subset_masks and float(torch.rand((), generator=g)) < cfg.subset_prob:
+            keep = self.subset_masks[int(torch.randint(len(self.subset_masks), (), generator=g))]
+            out = torch.where(keep[:, None], out, float("nan"))
+        return out
 
     def _clusters(self, pick: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """Pool indices (B, E): each run of ``cluster_size`` slots becomes one cluster about the
