@@ -524,3 +524,7 @@ def test_synthetic_take_keeps_one_actor_and_placement():
         syn.take(moving[:, :10], g)
     with pytest.raises(ValueError, match="transl"):
         syn.take(moving, g, path[:5])
+    with pytest.raises(ValueError, match="pose"):
+        syn.take(torch.full_like(moving, float("nan")), g)
+    with pytest.raises(ValueError, match="transl"):
+        syn.take(moving, g, torch.full_like(path, float("inf")))

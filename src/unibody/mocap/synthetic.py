@@ -558,9 +558,11 @@ class SyntheticMocap:
         (the take is the motion given).
         """
         check_shape(pose, "T 77 3", name="pose")
+        check_finite(pose, "pose")
         t, m, cfg, g = len(pose), len(self.layout), self.config, generator
         if transl is not None:
             check_shape(transl, f"{t} 3", name="transl")
+            check_finite(transl, "transl")
         ident = torch.randint(self.rest.shape[0], (1,), generator=g)
         heading = 2 * math.pi * torch.rand(1, 1, generator=g)
         frames = self._turned(pose.to(torch.float32), heading.expand(t, 1))
