@@ -502,18 +502,7 @@ class SyntheticMocap:
             u = torch.cat([u, self.extra_pool[pick]], dim=1)
         k = u.shape[1]
         posed, normal = self._skinned(ident, u, mats)
-        lo, hi = cfg.distance
-        dist = lo + (hi - lo) * torch.rand(batch, k, 1, generator=generator)
-        if cfg.fitted:
-            dj = cfg.distance_jitter * (2 * torch.rand(batch, m, 1, generator=generator) - 1)
-            dist[:, :m] = (self.layout.distance[:, None] + dj).clamp_min(0.0)
-        if self.stick.any():
-            slo, shi = cfg.stick_distance
-            stick = slo + (shi - slo) * torch.rand(batch, m, 1, generator=generator)
-            on = (torch.rand(batch, 1, 1, generator=generator) < cfg.stick_prob) & self.stick[:, None]
-            dist[:, :m] = torch.where(on, stick, dist[:, :m])
-        if cfg.suit[1] > 0:
-            dist = dist + cfg.suit[0] + (cfg.suit[1] - cfg.suit[0]) * torch.rand(batch, 1, 1, generator=generator)
+        dist = self._distances(batch, k, generator)
         sigma = cfg.noise[0] + (cfg.noise[1] - cfg.noise[0]) * torch.rand(batch, 1, 1, generator=generator)
         out = posed + normal * dist + sigma * torch.randn(batch, k, 3, generator=generator)
         if cfg.soft_tissue > 0 and self.soft.any():
@@ -535,6 +524,25 @@ class SyntheticMocap:
             count = torch.randint(extras + 1, (batch, 1), generator=generator)
             extra = torch.where((torch.arange(extras) >= count)[..., None], float("nan"), extra)
         return out, extra
+
+    def _distances(self, batch: int, k: int, generator: torch.Generator) -> torch.Tensor:
+        """(B, K, 1) m, each point's distance from the skin: uniform in ``distance``; the layout's
+        M markers (the first M of the K) at their layout distance when ``fitted``, on wrist bars
+        in a fraction ``stick_prob`` of the samples; all K farther by the sample's suit."""
+        cfg, m, g = self.config, len(self.layout), generator
+        lo, hi = cfg.distance
+        dist = lo + (hi - lo) * torch.rand(batch, k, 1, generator=g)
+        if cfg.fitted:
+            dj = cfg.distance_jitter * (2 * torch.rand(batch, m, 1, generator=g) - 1)
+            dist[:, :m] = (self.layout.distance[:, None] + dj).clamp_min(0.0)
+        if self.stick.any():
+            slo, shi = cfg.stick_distance
+            stick = slo + (shi - slo) * torch.rand(batch, m, 1, generator=g)
+            on = (torch.rand(batch, 1, 1, generator=g) < cfg.stick_prob) & self.stick[:, None]
+            dist[:, :m] = torch.where(on, stick, dist[:, :m])
+        if cfg.suit[1] > 0:
+            dist = dist + cfg.suit[0] + (cfg.suit[1] - cfg.suit[0]) * torch.rand(batch, 1, 1, generator=g)
+        return dist
 
     def _skinned(self, ident: torch.Tensor, u: torch.Tensor, mats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Skinned places and unit normals (B, K, 3) of vertices ``u`` (B, K; into :attr:`used`) of
@@ -575,18 +583,7 @@ class SyntheticMocap:
         u = self.candidates.gather(1, (torch.rand(1, m, generator=g) * self.num_candidates).long().T).T
         if self.mirrored.any():
             u = torch.where((torch.rand(1, 1, generator=g) < cfg.mirror_prob) & self.mirrored, self.mirror_used[u], u)
-        lo, hi = cfg.distance
-        dist = lo + (hi - lo) * torch.rand(1, m, 1, generator=g)
-        if cfg.fitted:
-            dj = cfg.distance_jitter * (2 * torch.rand(1, m, 1, generator=g) - 1)
-            dist = (self.layout.distance[:, None] + dj).clamp_min(0.0)
-        if self.stick.any():
-            slo, shi = cfg.stick_distance
-            stick = slo + (shi - slo) * torch.rand(1, m, 1, generator=g)
-            on = (torch.rand(1, 1, 1, generator=g) < cfg.stick_prob) & self.stick[:, None]
-            dist = torch.where(on, stick, dist)
-        if cfg.suit[1] > 0:
-            dist = dist + cfg.suit[0] + (cfg.suit[1] - cfg.suit[0]) * torch.rand(1, 1, 1, generator=g)
+        dist = self._distances(1, m, g)
         sigma = cfg.noise[0] + (cfg.noise[1] - cfg.noise[0]) * torch.rand((), generator=g)
         posed, normal = self._skinned(ident.expand(t), u.expand(t, m), mats)
         out = posed + normal * dist + sigma * torch.randn(t, m, 3, generator=g)
