@@ -34,14 +34,17 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from unibody.mocap.labeler import predict
 from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.pipeline import load_labeler
 from unibody.mocap.synthetic import LAB_VARIATION, SyntheticConfig, SyntheticMocap
+from unibody.motion import load_motion
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+from mocap import tracklet  # noqa: E402  (benchmarks/mocap.py: the real files' tracklet protocol)
 from train_labeler import motion_files, read_motions  # noqa: E402
 
 # the issue's held-out lab, on the mean body (1.51 m; an adult's distances are ~1.16x): T10 "16-22 cm
@@ -93,11 +96,6 @@ def frames(layout, cfg: SyntheticConfig, motions, n: int, seed: int):
 
 def takes(models: dict, layout, base: SyntheticConfig, files: list[Path], seed: int) -> None:
     """Whole takes of the held-out motions in each simulated lab (see the module)."""
-    import numpy as np
-    from mocap import tracklet  # benchmarks/mocap.py: the real files' tracklet protocol
-
-    from unibody.motion import load_motion
-
     clips = [load_motion(f) for f in files]
     frames_in = sum(len(c.pose) for c in clips)
     print(f"\n{len(clips)} takes ({frames_in} frames at the motions' own rate), seed {seed}, layout {layout.name}: "
@@ -147,8 +145,8 @@ def main() -> None:
     models = {m: load_labeler(m) for m in args.models}
     base = SyntheticConfig(identities=256, pool_seed=7777)
     rows = [(name, replace(base, **kw), None) for name, kw in ROWS]
-    if args.motions and args.holdout:
-        _, held = motion_files(args.motions, args.holdout)
+    held = motion_files(args.motions, args.holdout)[1] if args.motions and args.holdout else []
+    if held and not args.no_frames:
         motions = read_motions(held)
         subjects = " ".join(map(str, args.holdout))
         rows.append((f"held-out CMU motions (subjects {subjects})", replace(base, motion_prob=1.0), motions))
@@ -165,7 +163,7 @@ def main() -> None:
             cells = [f"{score(m, batches):.2f}" for m in models.values()]
             print(f"| {name} | " + " | ".join(cells) + f" |  <!-- {time.time() - t:.0f} s -->", flush=True)
     if args.takes:
-        takes(models, layout, base, motion_files(args.motions, args.holdout)[1], args.seed)
+        takes(models, layout, base, held, args.seed)
 
 
 if __name__ == "__main__":
