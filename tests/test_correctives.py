@@ -148,6 +148,46 @@ def test_fast_path_matches_autograd_path(pca, batch, procedural):
     assert (fast - on.pose(prepared, poses, correctives=False).vertices).norm(dim=-1).max() > 1e-3
 
 
+@pytest.mark.parametrize("which", ["chain", "plain", "twist"])
+def test_each_mask_is_one_run_of_slots(chain, which):
+    """Posing decodes each mask into one run of slots: the run holds exactly the mask's vertices."""
+    model = chain[1].correctives if which == "chain" else Correctives.load(procedural=which == "twist")
+    assert model._runs is not None
+    assert sorted(model._slot_vertex.tolist()) == model.union.tolist()  # slots: the union reordered
+    for (s, e), (r0, r1) in zip(model._blocks, model._runs, strict=True):
+        assert sorted(model._slot_vertex[r0:r1].tolist()) == sorted(model.vertex_ids[s:e].tolist())
+
+
+def test_masks_that_are_no_chain_fall_back_to_a_scatter(chain):
+    """Three masks pairwise overlapping in a ring cannot all be runs: the scatter path gives the same
+    displacements as a chain model with the same function (each vertex in two masks)."""
+    rig, layer, prepared = chain
+    ring = [torch.tensor([0, 1, 2, 3]), torch.tensor([2, 3, 4, 5]), torch.tensor([4, 5, 0, 1])]
+    inputs = torch.tensor([[2, 3], [3, 4], [4, 3]])
+    model = Correctives(inputs, ring, rig.num_vertices, hidden=8, channels=4, bones=((1, 2), (2, 3)))
+    assert model._runs is None
+    with torch.no_grad():
+        for p in model.parameters():
+            p.copy_(0.3 * torch.randn(p.shape, generator=torch.Generator().manual_seed(2)))
+    model = model.double()
+    pose = 0.8 * torch.randn(3, 4, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    rel = model.rest_relative(layer.local_rotations(pose), prepared.rest_rotations, layer.parents)
+    size = model.size_of(prepared.rest_joints)
+    d = model(rel, size)
+    by_hand = torch.zeros_like(d)  # f[mask_k] += s a_k D_k
+    act = model.activations(model.features(rel[:, model.needed - 1])) * size / model.size_ref
+    for k, (s, e) in enumerate(model._blocks):
+        by_hand[:, model.vertex_ids[s:e]] += (act[:, k] @ model.decode[3 * s : 3 * e].T).view(3, -1, 3)
+    assert (d - by_hand).abs().max() < 1e-12 and d.abs().max() > 1e-3
+    on = BodyLayer(rig, correctives=model).double()
+    p = prepared
+    shifted = PreparedIdentity(
+        p.rest_vertices + d, *(t.expand(3, *t.shape[1:]) for t in (p.rest_rotations, p.rest_joints, p.offsets))
+    )
+    ref = on.pose(shifted, pose, correctives=False).vertices
+    assert (on.pose(prepared, pose).vertices - ref).abs().max() < 1e-12
+
+
 def vars_(p: PreparedIdentity):
     return (p.rest_vertices, p.rest_rotations, p.rest_joints, p.offsets)
 

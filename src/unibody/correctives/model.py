@@ -64,6 +64,53 @@ def default_weights_path(procedural: bool = False) -> Path:
     return Path(str(resources.files("unibody.correctives") / "data" / name))
 
 
+def _slot_order(
+    inverse: torch.Tensor, blocks: list[tuple[int, int]], u: int
+) -> tuple[torch.Tensor, list[tuple[int, int]] | None]:
+    """An order of the union (U,) in which every mask is one run, and each mask's run (start, end).
+
+    ``inverse``: the union position of each mask row; ``blocks``: each mask's rows. Masks that
+    share vertices form groups (a limb's shoulder, elbow and wrist masks; the two hips'); inside
+    a group, vertices are ordered by the first and then the last mask they belong to, which
+    makes every mask a run when the masks of a group overlap like links of a chain (each vertex
+    in consecutive masks), as the teacher's joint regions do. Otherwise runs is None and the
+    order is the sorted union.
+    """
+    a = len(blocks)
+    member = torch.zeros(u, a, dtype=torch.bool)
+    for k, (s, e) in enumerate(blocks):
+        member[inverse[s:e], k] = True
+    group = list(range(a))  # union-find of masks sharing a vertex
+
+    def root(k: int) -> int:
+        while group[k] != k:
+            k = group[k]
+        return k
+
+    for row in torch.unique(member, dim=0):
+        ks = row.nonzero().flatten().tolist()
+        for k in ks[1:]:
+            group[root(k)] = root(ks[0])
+    ids = torch.arange(a)
+    first = torch.where(member, ids, a).amin(1)
+    last = torch.where(member, ids, -1).amax(1)
+    roots = torch.tensor([root(k) for k in range(a)])
+    order = torch.argsort((roots[first] * a + first) * a + last, stable=True)
+    slot = torch.empty_like(order)
+    slot[order] = torch.arange(u)
+    runs = []
+    for s, e in blocks:
+        if e == s:
+            runs.append((0, 0))
+            continue
+        where = slot[inverse[s:e]]
+        lo, hi = int(where.min()), int(where.max())
+        if hi - lo + 1 != e - s:  # not one run (or a vertex twice in a mask)
+            return torch.arange(u), None
+        runs.append((lo, hi + 1))
+    return order, runs
+
+
 class Correctives(nn.Module):
     """Pose correctives on the canonical topology.
 
@@ -140,23 +187,22 @@ class Correctives(nn.Module):
         # The union of the masks, sorted: where f may be non-zero.
         union, inverse = torch.unique(self.vertex_ids, return_inverse=True)
         self.register_buffer("union", union)
-        # Posing decodes plane by plane: each mask's rows reordered (xyz, vertex), so its product
-        # is (3, V_k, B), and each row's place in the (3 U, B) planes of the union.
-        perm, place = [], []
-        for s, e in self._blocks:
-            rows = torch.arange(s, e)
-            perm.append((3 * rows[None] + torch.arange(3)[:, None]).flatten())
-            place.append((inverse[s:e][None] + len(union) * torch.arange(3)[:, None]).flatten())
-        self.register_buffer("_planar_perm", torch.cat(perm), persistent=False)
-        place = torch.cat(place)
-        self.register_buffer("_planar_place", place, persistent=False)
-        # The same sum as a gather of each place's first row plus the few rows of vertices in two or
-        # three masks (0.21 vs 0.33 ms for the scatter of every row at B = 32, one core).
-        order = torch.sort(place, stable=True).indices
-        first = torch.ones(len(place), dtype=torch.bool)
-        first[1:] = place[order][1:] != place[order][:-1]
-        self.register_buffer("_planar_first", order[first], persistent=False)
-        self.register_buffer("_planar_extra", order[~first], persistent=False)
+        # Posing decodes into "slots", the union in an order where each mask is one run of slots
+        # (when the masks allow it: the shipped ones do), vertex-major with xyz inside: each
+        # active joint's product then adds straight into its run, with no gather of the masks'
+        # rows nor scatter of the vertices in two or three masks: the correctives' own time fell
+        # to 0.78-0.87 of the gather's (benchmarks/correctives_ab.py, one core). Each mask's rows
+        # are reordered by slot.
+        order, self._runs = _slot_order(inverse, self._blocks, len(union))
+        slot = torch.empty_like(order)
+        slot[order] = torch.arange(len(order))
+        self.register_buffer("_slot", slot, persistent=False)  # union position -> slot
+        self.register_buffer("_slot_vertex", union[order], persistent=False)  # slot -> vertex
+        v_slot = slot[inverse]
+        perm = torch.cat([s + torch.argsort(v_slot[s:e]) for s, e in self._blocks])
+        xyz = torch.arange(3)
+        self.register_buffer("_decode_rows", (3 * perm[:, None] + xyz).flatten(), persistent=False)
+        self.register_buffer("_decode_place", (3 * v_slot[perm][:, None] + xyz).flatten(), persistent=False)
 
     def size_of(self, rest_joints: torch.Tensor) -> torch.Tensor:
         """(Bi,) the identities' sizes (m): mean length of :attr:`bones` in rest joints (Bi, J, 3)."""
@@ -290,22 +336,23 @@ class Correctives(nn.Module):
                 cached = self._rest_cache = (key, self._mlp(zero))
         return cached[1]
 
-    def _planar_decode(self, dtype: torch.dtype) -> torch.Tensor:
-        """:attr:`decode` with each mask's rows in (xyz, vertex) order; kept between calls while
-        it needs no gradient and has not changed."""
+    def _slot_decode(self, dtype: torch.dtype) -> torch.Tensor:
+        """:attr:`decode` with each mask's rows in slot order; kept between calls while it needs
+        no gradient and has not changed."""
         if torch.is_grad_enabled() and self.decode.requires_grad:
-            return self.decode.to(dtype)[self._planar_perm]
+            return self.decode.to(dtype)[self._decode_rows]
         key = (dtype, self.decode.device, self.decode.data_ptr(), self.decode._version)
-        cached = getattr(self, "_planar_cache", None)
+        cached = getattr(self, "_decode_cache", None)
         if cached is None or cached[0] != key:
             with torch.no_grad():
-                cached = self._planar_cache = (key, self.decode.to(dtype)[self._planar_perm])
+                cached = self._decode_cache = (key, self.decode.to(dtype)[self._decode_rows])
         return cached[1]
 
-    def displacements_planar(
+    def slot_displacements(
         self, x6: torch.Tensor, scale: torch.Tensor, shape: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """(3, U, B) rest-space displacements (m) on :attr:`union`, one plane per axis, from :meth:`features`.
+        """(U, 3, B) rest-space displacements (m) of the union's vertices in slot order
+        (``union[order]``, see :meth:`union_displacements` for the sorted order), from :meth:`features`.
 
         Args:
             x6: (B, N, 6) features; scale: (B,) or (1,) identity size / :attr:`size_ref`;
@@ -314,17 +361,15 @@ class Correctives(nn.Module):
         act = self.activations(x6, shape) * scale.to(x6.dtype).view(-1, 1, 1)  # (B, A, C)
         b, u = act.shape[0], len(self.union)
         at = act.permute(1, 2, 0)  # (A, C, B)
-        dec = self._planar_decode(x6.dtype)
+        dec = self._slot_decode(x6.dtype)
         # One small product per active joint, over its own mask: (3 V_k, 24) @ (24, B).
-        if torch.is_grad_enabled() and (act.requires_grad or dec.requires_grad):
+        if self._runs is None or (torch.is_grad_enabled() and (act.requires_grad or dec.requires_grad)):
             per_mask = torch.cat([dec[3 * s : 3 * e] @ at[k] for k, (s, e) in enumerate(self._blocks)])
-            return per_mask.new_zeros(3 * u, b).index_add(0, self._planar_place, per_mask).view(3, u, b)
-        per_mask = dec.new_empty(dec.shape[0], b)  # the same products straight into one buffer
-        for k, (s, e) in enumerate(self._blocks):
-            torch.mm(dec[3 * s : 3 * e], at[k], out=per_mask[3 * s : 3 * e])
-        d = per_mask.index_select(0, self._planar_first)
-        extra = self._planar_extra
-        return d.index_add_(0, self._planar_place[extra], per_mask.index_select(0, extra)).view(3, u, b)
+            return per_mask.new_zeros(3 * u, b).index_add(0, self._decode_place, per_mask).view(u, 3, b)
+        d = dec.new_zeros(3 * u, b)
+        for k, ((s, e), (r, _)) in enumerate(zip(self._blocks, self._runs, strict=True)):
+            d[3 * r : 3 * (r + e - s)].addmm_(dec[3 * s : 3 * e], at[k])
+        return d.view(u, 3, b)
 
     def union_displacements(
         self, rel: torch.Tensor, size: torch.Tensor, shape: torch.Tensor | None = None
@@ -337,7 +382,7 @@ class Correctives(nn.Module):
             shape: (B or 1, S + 1) :meth:`shape_features` (a model built with ``shape``).
         """
         x6 = self.features(rel[:, self.needed - 1])
-        return self.displacements_planar(x6, size / self.size_ref, shape).permute(2, 1, 0)
+        return self.slot_displacements(x6, size / self.size_ref, shape).index_select(0, self._slot).permute(2, 0, 1)
 
     def forward(self, rel: torch.Tensor, size: torch.Tensor, shape: torch.Tensor | None = None) -> torch.Tensor:
         """(B, V, 3) rest-space displacements on the whole topology (zero off :attr:`union`).
@@ -383,17 +428,17 @@ class Correctives(nn.Module):
             binding: :meth:`skin_binding` of that rig's skinning;
             shape: (Bi, S + 1) :meth:`shape_features` (a model built with ``shape``).
         """
-        d = self.displacements_planar(self.features(rel), size / self.size_ref, shape)
+        d = self.slot_displacements(self.features(rel), size / self.size_ref, shape)
         return self.apply(vertices, mats, d, binding)
 
     def skin_binding(self, skinning) -> dict[str, torch.Tensor]:  # noqa: ANN001 (a geometry.skinning.Skinning)
-        """The skinning weights of the :attr:`union` rows, to skin displacements by :meth:`apply`.
+        """The skinning weights of the :attr:`union` rows in slot order, to skin displacements by :meth:`apply`.
 
         Only the joints that skin those rows are kept (Jd of the rig's), as a CSR (U, Jd) matrix:
         ``{"crow", "col", "val", "joints"}``. The layer keeps it (one model may serve a plain and
         a procedural-twist layer, whose skinning differs).
         """
-        dense = skinning.dense()[self.union.to(skinning.weight.device)]
+        dense = skinning.dense()[self._slot_vertex.to(skinning.weight.device)]
         joints = torch.nonzero(dense.abs().amax(0) > 0).flatten()
         w = dense[:, joints].to_sparse_csr()
         return {"crow": w.crow_indices().int(), "col": w.col_indices().int(), "val": w.values(), "joints": joints}
@@ -420,8 +465,7 @@ class Correctives(nn.Module):
             vertices: (B, V, 3) LBS of the rest meshes (a fresh tensor: updated in place when no
                 gradient is needed).
             mats: (J, 4, 3, B) joint-major skinning transforms (``geometry.kinematics``).
-            d: (3, U, B) rest-space displacements on :attr:`union`, one plane per axis
-                (:meth:`displacements_planar`).
+            d: (U, 3, B) rest-space displacements of the union in slot order (:meth:`slot_displacements`).
             binding: :meth:`skin_binding` of the skinning ``mats`` belong to.
         """
         u, b = len(self.union), mats.shape[3]
@@ -446,12 +490,13 @@ class Correctives(nn.Module):
                     out = blend[i, :, s : s + step]
                     torch.addmm(out, w, rot[i, :, s : s + step], beta=0, out=out)
             bl = blend.view(3, 3, u, b)  # [column, row, vertex, pose]
-        moved = torch.addcmul(bl[0] * d[0], bl[1], d[1]).addcmul(bl[2], d[2])  # (row, U, B)
-        moved = moved.permute(1, 2, 0).contiguous()  # (U, B, 3)
         vm = vertices.transpose(0, 1)  # (V, B, 3): the sparse product's own vertex-major storage
-        if torch.is_grad_enabled() and (vertices.requires_grad or moved.requires_grad):
-            return vm.index_add(0, self.union, moved).transpose(0, 1)
-        return vm.index_add_(0, self.union, moved).transpose(0, 1)
+        dx, dy, dz = d.unbind(1)  # (U, B) each
+        if torch.is_grad_enabled() and (vertices.requires_grad or bl.requires_grad or d.requires_grad):
+            moved = torch.addcmul(bl[0] * dx, bl[1], dy).addcmul(bl[2], dz)  # (row, U, B)
+            return vm.index_add(0, self._slot_vertex, moved.permute(1, 2, 0)).transpose(0, 1)
+        moved = (bl[0] * dx).addcmul_(bl[1], dy).addcmul_(bl[2], dz)  # in place: no temporaries
+        return vm.index_add_(0, self._slot_vertex, moved.permute(1, 2, 0).contiguous()).transpose(0, 1)
 
     @staticmethod
     def _empty(like: torch.Tensor, *shape: int) -> torch.Tensor:

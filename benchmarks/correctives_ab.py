@@ -1,0 +1,81 @@
+"""The correctives pass of another revision beside this one, in one process (issue 40's speed).
+
+``python benchmarks/correctives_ab.py --rev HEAD~1``: loads ``src/unibody/correctives/model.py`` of
+``--rev`` from git as a module beside the installed one, gives it to a second layer (its own
+skinning binding), checks both pose the same meshes, and times ``pose()`` without correctives,
+with the other revision's and with this one's, interleaved round by round (this machine is
+shared: only ratios within one run compare). The weights are this revision's shipped ones.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from unibody import BodyLayer
+from unibody.correctives.stress import stress_poses
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def model_of(rev: str):  # noqa: ANN201 (the other revision's Correctives class)
+    """``Correctives`` of ``model.py`` at ``rev``, imported as ``unibody.correctives._rev_model``."""
+    text = subprocess.run(
+        ["git", "show", f"{rev}:src/unibody/correctives/model.py"], cwd=ROOT, check=True, capture_output=True, text=True
+    ).stdout
+    path = Path(tempfile.mkdtemp()) / "model.py"
+    path.write_text(text)
+    spec = importlib.util.spec_from_file_location("unibody.correctives._rev_model", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module.Correctives
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--rev", default="HEAD", help="the git revision to compare with (default HEAD)")
+    ap.add_argument("--rounds", type=int, default=30, help="rounds of 10 calls each (default 30)")
+    args = ap.parse_args()
+    other = model_of(args.rev)
+    poses, _ = stress_poses(torch.Generator().manual_seed(0))
+    print(f"pose() with correctives, float32, {torch.get_num_threads()} thread(s), median of {args.rounds} x 10 calls")
+    for procedural in (False, True):
+        new = BodyLayer.from_anny(correctives=True, procedural=procedural)
+        old = BodyLayer.from_anny(correctives=True, procedural=procedural)
+        old.correctives = other.load(procedural=procedural)
+        skinning = old.skinning if old.twist is None else old.twist.skinning
+        for k, v in old.correctives.skin_binding(skinning).items():
+            setattr(old, f"_corr_{k}", v)
+        prepared = new.prepare_identity(torch.zeros(1, new.identity.num_params))
+        for b in (1, 32):
+            pose = poses[:b]
+            diff = float((new.pose(prepared, pose).vertices - old.pose(prepared, pose).vertices).abs().max())
+            calls = {"without": (new, False), args.rev: (old, None), "this": (new, None)}
+            times = {k: [] for k in calls}
+            for layer, corr in calls.values():
+                for _ in range(3):
+                    layer.pose(prepared, pose, correctives=corr)
+            for _ in range(args.rounds):
+                for k, (layer, corr) in calls.items():
+                    t = time.perf_counter()
+                    for _ in range(10):
+                        layer.pose(prepared, pose, correctives=corr)
+                    times[k].append((time.perf_counter() - t) / 10 * 1e3)
+            off, was, now = (float(np.median(v)) for v in times.values())
+            rig = "twist" if procedural else "plain"
+            print(f"{rig} rig, batch {b:2d}: without {off:.2f} ms, {args.rev} {was:.2f} ms (+{was / off - 1:.0%}), "
+                  f"this {now:.2f} ms (+{now / off - 1:.0%}); correctives' own time this / {args.rev}: "
+                  f"{(now - off) / (was - off):.2f}; meshes differ by {diff:.1e} m")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
