@@ -9,7 +9,7 @@ regions (mean, P95), limb-segment volume / rest, the smallest forearm cross-sect
 the MLP makes at small poses (every joint within 0.2 rad of the rest pose, and of the T-pose;
 both rigs), the
 cost of posing with correctives at batch 1 and 32 on both rigs (float32, one thread, median of 15
-interleaved rounds of 10 calls),
+interleaved rounds of 10 calls) and its split over the correctives' stages (plain rig, batch 32),
 and what pose inversion leaves on meshes made with correctives, modelling plain LBS
 (``corrective_rounds=0``) and knowing the correctives (``corrective_rounds=2``, the default);
 how far the teacher and the MLP move flesh that one bone carries off that bone (stress poses, and
@@ -85,6 +85,36 @@ def timing(layer: BodyLayer, prepared, pose: torch.Tensor, rounds: int = 15) -> 
                 layer.pose(prepared, pose, correctives=corr)
             got.append((time.perf_counter() - t) / 10 * 1e3)
     return float(np.median(times[False])), float(np.median(times[True]))
+
+
+def stage_split(layer: BodyLayer, prepared, pose: torch.Tensor, rounds: int = 15) -> dict[str, float]:
+    """ms per call of ``pose()`` without and with correctives and of the correctives' stages (the
+    rotations they read, the MLP, the decode; skinning the displacements: the rest of the
+    difference), medians of ``rounds`` interleaved rounds of 10 calls."""
+    corr = layer.correctives
+    world = layer.pose(prepared, pose, correctives=False).transforms
+    rel = corr.world_relative(world, prepared.rest_rotations, layer.parents)
+    shape = corr.shape_inputs(prepared.rest_vertices, prepared.rest_joints)
+    x6 = corr.features(rel)
+    scale = corr.size_of(prepared.rest_joints) / corr.size_ref
+    calls = {
+        "without": lambda: layer.pose(prepared, pose, correctives=False),
+        "with": lambda: layer.pose(prepared, pose, correctives=True),
+        "rotations": lambda: corr.features(corr.world_relative(world, prepared.rest_rotations, layer.parents)),
+        "MLP": lambda: corr.activations(x6, shape),
+        "MLP + decode": lambda: corr.slot_displacements(x6, scale, shape),
+    }
+    times = {k: [] for k in calls}
+    for _ in range(rounds):
+        for k, f in calls.items():
+            t = time.perf_counter()
+            for _ in range(10):
+                f()
+            times[k].append((time.perf_counter() - t) / 10 * 1e3)
+    m = {k: float(np.median(v)) for k, v in times.items()}
+    m["decode"] = m.pop("MLP + decode") - m["MLP"]
+    m["skinning the displacements"] = m["with"] - m["without"] - m["rotations"] - m["MLP"] - m["decode"]
+    return m
 
 
 def panel(verts, faces, centre, view, label, size=360) -> np.ndarray:
@@ -167,6 +197,9 @@ def main() -> None:
                 off, on = timing(lay, prepared, poses[:b])
                 print(f"pose(), {tag}, float32, batch {b:2d}, {torch.get_num_threads()} thread(s): without "
                       f"{off:6.2f} ms, with correctives {on:6.2f} ms (+{on / off - 1:.0%})")  # fmt: skip
+        split = stage_split(layer, prepared, poses[:32])
+        parts = [f"{k} {v:.2f} ms ({v / split['without']:.0%})" for k, v in split.items() if k != "without"]
+        print("  plain rig, batch 32, the correctives' stages against pose() without them: " + ", ".join(parts))
     if "inversion" in args.sections:
         inversion(layer, args)
     if args.png:
