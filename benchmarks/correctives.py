@@ -113,7 +113,7 @@ def stage_split(layer: BodyLayer, prepared, pose: torch.Tensor, rounds: int = 15
             times[k].append((time.perf_counter() - t) / 10 * 1e3)
     m = {k: float(np.median(v)) for k, v in times.items()}
     m["decode"] = m.pop("MLP + decode") - m["MLP"]
-    m["skinning the displacements"] = m["with"] - m["without"] - m["rotations"] - m["MLP"] - m["decode"]
+    m["skinning the displacements (the rest)"] = m["with"] - m["without"] - m["rotations"] - m["MLP"] - m["decode"]
     return m
 
 
