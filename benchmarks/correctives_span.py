@@ -11,10 +11,11 @@ pose, on
   ``scripts/train_correctives.py generate``) with C modes each, for each C in ``--modes``: the
   best C-mode decoders of that data (up to the overlap of the masks);
 
-in L2 and in edge differences (what edge strain sees; plus 0.1 of the L2 term), then skinned and
-measured as ``benchmarks/correctives.py`` measures (plain rig). The reduction is against LBS.
+in L2 and in edge differences (what edge strain sees; plus 0.1 of the L2 term), then skinned by
+the rig and measured as ``benchmarks/correctives.py`` measures. ``--rig twist``: the procedural-twist
+rig's weights, targets (``d_twist``) and skinning. The reduction is against plain LBS.
 
-    OMP_NUM_THREADS=2 python benchmarks/correctives_span.py --data build/correctives-data-anchor-mix
+    OMP_NUM_THREADS=2 python benchmarks/correctives_span.py --data build/correctives-data-anchor-mix [--rig twist]
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from unibody.body import PreparedIdentity
 from unibody.correctives.metrics import SurfaceMeasures
 from unibody.correctives.model import Correctives
 from unibody.correctives.stress import stress_poses
-from unibody.correctives.training import TeacherSetup, draw_identities, teacher_targets
+from unibody.correctives.training import TeacherSetup, draw_identities, teacher_targets, twist_targets
 from unibody.synth.poses import keyed_generator
 
 
@@ -79,13 +80,16 @@ def main() -> None:
     ap.add_argument("--identities", type=int, default=3, help="the first of the correctives benchmark's (default 3)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--rig", choices=("plain", "twist"), default="plain")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     chunks = sorted(Path(args.data).glob("chunk_*.pt"))
     if not chunks:
         raise SystemExit(f"--data: no chunk_*.pt files in {args.data!r}")
-    model = Correctives.load()
-    layer = BodyLayer.from_pca(correctives=model)
+    twist = args.rig == "twist"
+    model = Correctives.load(procedural=twist)
+    layer = BodyLayer.from_pca(correctives=Correctives.load())  # the plain rig: LBS, the teacher, the measures
+    rig = BodyLayer.from_pca(procedural=twist, correctives=model)
     measures = SurfaceMeasures.from_layer(layer)
     meta = model.meta
     setup = TeacherSetup(
@@ -97,7 +101,8 @@ def main() -> None:
     if not torch.equal(setup.union, model.union):
         raise SystemExit("the teacher's region is not the shipped model's union")
     t0 = time.perf_counter()
-    data = torch.cat([torch.load(c, map_location="cpu", weights_only=True)["d"] for c in chunks])  # (N, U, 3)
+    key = "d_twist" if twist else "d"
+    data = torch.cat([torch.load(c, map_location="cpu", weights_only=True)[key] for c in chunks])  # (N, U, 3)
     at = torch.searchsorted(model.union, model.vertex_ids)
     right = []  # per mask: right singular vectors of its training targets, (3 V_k, r)
     for s, e in model._blocks:
@@ -113,7 +118,7 @@ def main() -> None:
     for c in args.modes:
         bases[f"PCA, {c} modes per joint"] = mask_basis(model, [r[:, :c] for r in right])
     project = Projector(model, layer.faces.numpy().astype(np.int64))
-    plain = BodyLayer.from_pca().double()
+    skin = BodyLayer.from_pca(procedural=twist).double()
     poses, _ = stress_poses(keyed_generator("correctives-stress", args.seed))
     coeffs = draw_identities(layer, args.identities, keyed_generator("correctives-benchmark", args.seed))
     rows: dict[str, list] = {}
@@ -127,7 +132,10 @@ def main() -> None:
         lbs, teacher, d = teacher_targets(layer, prepared, poses, setup, iterations=int(meta["teacher_iterations"]))
         add("LBS", prepared, lbs)
         add("teacher", prepared, teacher)
-        add("correctives MLP (shipped)", prepared, layer.pose(prepared, poses).vertices)
+        if twist:
+            add("LBS + twist", prepared, rig.pose(prepared, poses, correctives=False).vertices)
+            d = twist_targets(prepared, poses, teacher, setup)
+        add("correctives MLP (shipped)", prepared, rig.pose(prepared, poses).vertices)
         p64 = [
             t.double().expand(len(poses), *t.shape[1:])
             for t in (prepared.rest_rotations, prepared.rest_joints, prepared.offsets)
@@ -137,7 +145,7 @@ def main() -> None:
                 full = torch.zeros(len(poses), model.num_vertices, 3, dtype=torch.float64)
                 full[:, model.union] = project(basis, d.double(), edges)
                 shifted = PreparedIdentity(prepared.rest_vertices.double() + full, *p64)
-                add(f"{name}, {'edge' if edges else 'L2'} fit", prepared, plain.pose(shifted, poses.double()).vertices)
+                add(f"{name}, {'edge' if edges else 'L2'} fit", prepared, skin.pose(shifted, poses.double()).vertices)
         print(f"  identity {n + 1}/{len(coeffs)} ({time.perf_counter() - t0:.0f} s)", flush=True)
     print(f"\n{len(poses)} stress poses x {len(coeffs)} held-out identities; best activations per pose (oracle)")
     base = None
