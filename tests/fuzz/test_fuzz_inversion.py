@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from unibody import BodyLayer
@@ -95,7 +95,13 @@ def test_invert_gives_finite_result_or_clear_error(setup, case):
         assert float(r.per_vertex_error.mean()) < 0.05
 
 
+# Found by the long run (2026-11-29): 265 vertices 1 m off un-posed to a rest shape 17 m across,
+# refused by prepare_rest as "rest_vertices: ... not in metres", naming neither the input nor the cause.
+_OUTLIERS = dict(batch=1, kind="outliers", scale=1.0, axis=0, noise=1.0, count=265, distance=1.0, seed=2)
+
+
 @given(bad_meshes())
+@example(case={**_OUTLIERS, "preset": "fast"})
 def test_estimate_identity_gives_finite_rest_or_clear_error(setup, case):
     layer, prepared, meshes, inverters = setup
     v = _make(meshes, case)
