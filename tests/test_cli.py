@@ -4,6 +4,7 @@ error class, no traceback unless --debug, and no input or earlier output ever lo
 from __future__ import annotations
 
 import os
+import re
 import resource
 import signal
 import subprocess
@@ -371,6 +372,34 @@ def test_npz_zip_bomb_is_refused(tmp_path, capsys):
     code, _, err = _run(capsys, "pose", bomb, "--out", tmp_path / "o.npz")
     assert code == 3
     _one_line_error(err, "bomb.npz: member 'pose.npy' would expand", "zip bomb")
+
+
+@pytest.mark.parametrize(
+    ("offset", "value", "why"),
+    [
+        (8, 0x01, "is encrypted"),
+        (8, 0x40, "is strongly encrypted"),
+        (10, 77, "unknown method (77)"),
+        (6, 109, "zip file version 10.9"),
+    ],
+    ids=["encrypted", "strong-encryption", "method", "version"],
+)
+def test_npz_members_zipfile_cannot_open_are_refused(tmp_path, capsys, offset, value, why):
+    """A motion whose central directory says its pose member is encrypted, compressed by an unknown
+    method or of a newer zip version (found by the long fuzz run: NotImplementedError /
+    RuntimeError from zipfile before): one line naming the file, exit 3; load_motion too."""
+    path = _motion(tmp_path / "m.npz")
+    raw = bytearray(path.read_bytes())
+    entry = raw.index(b"PK\x01\x02")  # the central directory's entries; the name starts at byte 46
+    while raw[entry + 46 : entry + 54] != b"pose.npy":
+        entry = raw.index(b"PK\x01\x02", entry + 4)
+    raw[entry + offset : entry + offset + 2] = value.to_bytes(2, "little")
+    path.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match=re.escape(why)):
+        load_motion(path)
+    code, _, err = _run(capsys, "pose", path, "--out", tmp_path / "o.npz")
+    assert code == 3
+    _one_line_error(err, "m.npz", why)
 
 
 def test_warnings_are_one_line(tmp_path, capsys, monkeypatch):

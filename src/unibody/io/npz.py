@@ -43,22 +43,46 @@ _BOMB_RATIO = 50  # float arrays deflate 1-3x; a run of zeros ~1000x
 def check_npz_members(path: str | Path) -> None:
     """Refuse an ``.npz`` whose members would expand to far more memory than the file holds (a zip bomb).
 
-    Does nothing for files that are not zips (the reader reports those).
+    Also refuses, before any member is read, what ``zipfile`` cannot open (encrypted members, an
+    unknown compression method, a newer zip version): reading them raised ``NotImplementedError``
+    or ``RuntimeError`` rather than an error naming the file. Does nothing for files that are not
+    zips (the reader reports those).
 
     Raises:
-        ValueError: a member larger than 256 MiB compressed more than 50 times.
+        ValueError: such a member, or one larger than 256 MiB compressed more than 50 times.
     """
     try:
         with zipfile.ZipFile(path) as z:
             infos = z.infolist()
+    except NotImplementedError as exc:  # a zip feature zipfile lacks (a newer zip version)
+        raise ValueError(f"{path}: not an .npz of arrays numpy can read ({exc})") from None
     except (OSError, zipfile.BadZipFile, ValueError):
         return
     for info in infos:
+        why = _unopenable(info)
+        if why:
+            raise ValueError(f"{path}: member {info.filename!r} is {why}; not an .npz of arrays numpy can read")
         if info.file_size > _BOMB_BYTES and info.file_size > _BOMB_RATIO * max(info.compress_size, 1):
             raise ValueError(
                 f"{path}: member {info.filename!r} would expand from {info.compress_size:,} to {info.file_size:,} "
                 "bytes; refusing a likely zip bomb"
             )
+
+
+_METHODS = (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED, zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA)
+
+
+def _unopenable(info: zipfile.ZipInfo) -> str | None:
+    """Why ``zipfile`` would refuse to open this member (the checks of ``ZipFile.open``), or None."""
+    if info.flag_bits & 0x1:
+        return "encrypted"
+    if info.flag_bits & 0x40:
+        return "strongly encrypted"
+    if info.flag_bits & 0x20:
+        return "compressed patched data"
+    if info.compress_type not in _METHODS:
+        return f"compressed with an unknown method ({info.compress_type})"
+    return None
 
 
 def reason(exc: BaseException) -> str:
