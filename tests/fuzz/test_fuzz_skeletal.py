@@ -79,19 +79,11 @@ def test_bvh(tmp_path_factory, data):
     _read(read_bvh, path)
 
 
-@given(data=mutated(ASF))
-def test_asf(tmp_path_factory, data):
-    folder = tmp_path_factory.mktemp("asf")
-    asf, amc = folder / "s.asf", folder / "s.amc"
-    asf.write_bytes(data)
-    amc.write_text(AMC)
-    _read(read_asf_amc, asf, amc)
-
-
-@given(data=mutated(AMC))
-def test_amc(tmp_path_factory, data):
-    folder = tmp_path_factory.mktemp("amc")
-    asf, amc = folder / "s.asf", folder / "s.amc"
-    asf.write_text(ASF)
-    amc.write_bytes(data)
-    _read(read_asf_amc, asf, amc)
+@given(which=st.sampled_from(["asf", "amc"]), data=st.data())
+def test_asf_amc(tmp_path_factory, which, data):
+    """One of the two files mutated, the other as valid."""
+    folder = tmp_path_factory.mktemp("asfamc")
+    files = {"asf": (folder / "s.asf", ASF), "amc": (folder / "s.amc", AMC)}
+    for name, (path, text) in files.items():
+        path.write_bytes(data.draw(mutated(text), label=name) if name == which else text.encode())
+    _read(read_asf_amc, files["asf"][0], files["amc"][0])
