@@ -74,10 +74,10 @@ _METHODS = (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED, zipfile.ZIP_BZIP2, zipfile
 
 def _unopenable(info: zipfile.ZipInfo) -> str | None:
     """Why ``zipfile`` would refuse to open this member (the checks of ``ZipFile.open``), or None."""
+    if info.flag_bits & 0x40:  # before bit 0, which strong encryption sets too
+        return "strongly encrypted"
     if info.flag_bits & 0x1:
         return "encrypted"
-    if info.flag_bits & 0x40:
-        return "strongly encrypted"
     if info.flag_bits & 0x20:
         return "compressed patched data"
     if info.compress_type not in _METHODS:
