@@ -27,6 +27,7 @@ unless ``--teacher-iterations`` says otherwise.
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 
 import numpy as np
@@ -71,39 +72,12 @@ def small_poses(layer: BodyLayer, prepared, n: int, gen: torch.Generator, around
     return layer.to_relative(rest_local[None] @ r)
 
 
-def timing(layer: BodyLayer, prepared, pose: torch.Tensor, rounds: int = 15) -> tuple[float, float]:
-    """ms per call without and with correctives: median of ``rounds`` rounds of 10 calls each,
-    the two interleaved round by round (the machine's load moves both alike)."""
-    times = {False: [], True: []}
-    for corr in times:
+def interleaved(calls: dict, rounds: int = 15) -> dict:
+    """ms per call of each of ``calls``: median of ``rounds`` rounds of 10 calls each, the calls
+    interleaved round by round (the machine's load moves them alike), after 3 warm-up calls."""
+    for f in calls.values():
         for _ in range(3):
-            layer.pose(prepared, pose, correctives=corr)
-    for _ in range(rounds):
-        for corr, got in times.items():
-            t = time.perf_counter()
-            for _ in range(10):
-                layer.pose(prepared, pose, correctives=corr)
-            got.append((time.perf_counter() - t) / 10 * 1e3)
-    return float(np.median(times[False])), float(np.median(times[True]))
-
-
-def stage_split(layer: BodyLayer, prepared, pose: torch.Tensor, rounds: int = 15) -> dict[str, float]:
-    """ms per call of ``pose()`` without and with correctives and of the correctives' stages (the
-    rotations they read, the MLP, the decode; skinning the displacements: the rest of the
-    difference), medians of ``rounds`` interleaved rounds of 10 calls."""
-    corr = layer.correctives
-    world = layer.pose(prepared, pose, correctives=False).transforms
-    rel = corr.world_relative(world, prepared.rest_rotations, layer.parents)
-    shape = corr.shape_inputs(prepared.rest_vertices, prepared.rest_joints)
-    x6 = corr.features(rel)
-    scale = corr.size_of(prepared.rest_joints) / corr.size_ref
-    calls = {
-        "without": lambda: layer.pose(prepared, pose, correctives=False),
-        "with": lambda: layer.pose(prepared, pose, correctives=True),
-        "rotations": lambda: corr.features(corr.world_relative(world, prepared.rest_rotations, layer.parents)),
-        "MLP": lambda: corr.activations(x6, shape),
-        "MLP + decode": lambda: corr.slot_displacements(x6, scale, shape),
-    }
+            f()
     times = {k: [] for k in calls}
     for _ in range(rounds):
         for k, f in calls.items():
@@ -111,7 +85,35 @@ def stage_split(layer: BodyLayer, prepared, pose: torch.Tensor, rounds: int = 15
             for _ in range(10):
                 f()
             times[k].append((time.perf_counter() - t) / 10 * 1e3)
-    m = {k: float(np.median(v)) for k, v in times.items()}
+    return {k: float(np.median(v)) for k, v in times.items()}
+
+
+def timing(layer: BodyLayer, prepared, pose: torch.Tensor, rounds: int = 15) -> tuple[float, float]:
+    """ms per call of ``pose()`` without and with correctives (:func:`interleaved`)."""
+    m = interleaved({c: functools.partial(layer.pose, prepared, pose, correctives=c) for c in (False, True)}, rounds)
+    return m[False], m[True]
+
+
+def stage_split(layer: BodyLayer, prepared, pose: torch.Tensor, rounds: int = 15) -> dict[str, float]:
+    """ms per call of ``pose()`` without and with correctives and of the correctives' stages (the
+    rotations they read, the MLP, the decode; skinning the displacements: the rest of the
+    difference), :func:`interleaved`."""
+    corr = layer.correctives
+    world = layer.pose(prepared, pose, correctives=False).transforms
+    rel = corr.world_relative(world, prepared.rest_rotations, layer.parents)
+    shape = corr.shape_inputs(prepared.rest_vertices, prepared.rest_joints)
+    x6 = corr.features(rel)
+    scale = corr.size_of(prepared.rest_joints) / corr.size_ref
+    m = interleaved(
+        {
+            "without": lambda: layer.pose(prepared, pose, correctives=False),
+            "with": lambda: layer.pose(prepared, pose, correctives=True),
+            "rotations": lambda: corr.features(corr.world_relative(world, prepared.rest_rotations, layer.parents)),
+            "MLP": lambda: corr.activations(x6, shape),
+            "MLP + decode": lambda: corr.slot_displacements(x6, scale, shape),
+        },
+        rounds,
+    )
     m["decode"] = m.pop("MLP + decode") - m["MLP"]
     m["skinning the displacements (the rest)"] = m["with"] - m["without"] - m["rotations"] - m["MLP"] - m["decode"]
     return m

@@ -10,18 +10,20 @@ shared: only ratios within one run compare). The weights are this revision's shi
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from unibody import BodyLayer
 from unibody.correctives.stress import stress_poses
+
+sys.path.insert(0, str(Path(__file__).parent))
+from correctives import interleaved  # noqa: E402  (benchmarks/correctives.py: the interleaved timer)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -59,18 +61,14 @@ def main() -> None:
         for b in (1, 32):
             pose = poses[:b]
             diff = float((new.pose(prepared, pose).vertices - old.pose(prepared, pose).vertices).abs().max())
-            calls = {"without": (new, False), args.rev: (old, None), "this": (new, None)}
-            times = {k: [] for k in calls}
-            for layer, corr in calls.values():
-                for _ in range(3):
-                    layer.pose(prepared, pose, correctives=corr)
-            for _ in range(args.rounds):
-                for k, (layer, corr) in calls.items():
-                    t = time.perf_counter()
-                    for _ in range(10):
-                        layer.pose(prepared, pose, correctives=corr)
-                    times[k].append((time.perf_counter() - t) / 10 * 1e3)
-            off, was, now = (float(np.median(v)) for v in times.values())
+            off, was, now = interleaved(
+                {
+                    "without": functools.partial(new.pose, prepared, pose, correctives=False),
+                    args.rev: functools.partial(old.pose, prepared, pose),
+                    "this": functools.partial(new.pose, prepared, pose),
+                },
+                args.rounds,
+            ).values()
             rig = "twist" if procedural else "plain"
             print(f"{rig} rig, batch {b:2d}: without {off:.2f} ms, {args.rev} {was:.2f} ms (+{was / off - 1:.0%}), "
                   f"this {now:.2f} ms (+{now / off - 1:.0%}); correctives' own time this / {args.rev}: "

@@ -119,6 +119,20 @@ def _compiled_pose_math() -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
     return torch.compile(_pose_math, dynamic=True)
 
 
+def outside_rest_extent(rest: torch.Tensor) -> tuple[int, float] | None:
+    """(mesh, bounding-box diagonal in m) of the first of rest meshes (B, V, 3) whose diagonal lies
+    outside :data:`REST_EXTENT_M` (no body is that small or large), or None."""
+    with torch.no_grad():
+        low, high = torch.aminmax(rest, dim=1)  # one pass
+        diag = torch.linalg.vector_norm(high - low, dim=-1)
+        lo, hi = REST_EXTENT_M
+        bad = ~((diag >= lo) & (diag <= hi))
+        if not bool(bad.any()):
+            return None
+        b = int(bad.nonzero()[0, 0])
+        return b, float(diag[b])
+
+
 @dataclass(frozen=True, slots=True)
 class PreparedIdentity:
     """An identity fitted once, posed many times (``Bi`` is 1 or the pose batch).
@@ -379,15 +393,11 @@ class BodyLayer(nn.Module):
     @staticmethod
     def _check_extent(rest: torch.Tensor) -> None:
         """ValueError unless every mesh's bounding-box diagonal lies in :data:`REST_EXTENT_M`."""
-        with torch.no_grad():
-            low, high = torch.aminmax(rest, dim=1)  # one pass
-            diag = torch.linalg.vector_norm(high - low, dim=-1)
-            lo, hi = REST_EXTENT_M
-            bad = ~((diag >= lo) & (diag <= hi))
-            if not bool(bad.any()):
-                return
-            b = int(bad.nonzero()[0, 0])
-            d = float(diag[b])
+        found = outside_rest_extent(rest)
+        if found is None:
+            return
+        b, d = found
+        lo, hi = REST_EXTENT_M
         if d == 0:
             why = "the mesh is collapsed to a point"
         elif d < lo:

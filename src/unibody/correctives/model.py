@@ -76,26 +76,19 @@ def _slot_order(
     in consecutive masks), as the teacher's joint regions do. Otherwise runs is None and the
     order is the sorted union.
     """
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
     a = len(blocks)
     member = torch.zeros(u, a, dtype=torch.bool)
     for k, (s, e) in enumerate(blocks):
         member[inverse[s:e], k] = True
-    group = list(range(a))  # union-find of masks sharing a vertex
-
-    def root(k: int) -> int:
-        while group[k] != k:
-            k = group[k]
-        return k
-
-    for row in torch.unique(member, dim=0):
-        ks = row.nonzero().flatten().tolist()
-        for k in ks[1:]:
-            group[root(k)] = root(ks[0])
+    shared = (member.T.float() @ member.float()).numpy() > 0  # (A, A): masks sharing a vertex
+    group = torch.from_numpy(connected_components(csr_matrix(shared), directed=False)[1]).long()
     ids = torch.arange(a)
     first = torch.where(member, ids, a).amin(1)
     last = torch.where(member, ids, -1).amax(1)
-    roots = torch.tensor([root(k) for k in range(a)])
-    order = torch.argsort((roots[first] * a + first) * a + last, stable=True)
+    order = torch.argsort((group[first] * a + first) * a + last, stable=True)
     slot = torch.empty_like(order)
     slot[order] = torch.arange(u)
     runs = []

@@ -33,7 +33,7 @@ import torch
 from torch import nn
 
 from .._checks import check_finite, check_like, check_shape
-from ..body import REST_EXTENT_M, BodyLayer, PreparedIdentity
+from ..body import REST_EXTENT_M, BodyLayer, PreparedIdentity, outside_rest_extent
 from ..geometry.kinematics import forward_kinematics
 from ..geometry.procrustes import polar_svd
 from ..geometry.rotations import matrix_to_axis_angle, matrix_to_rot6d, rot6d_to_matrix
@@ -651,14 +651,11 @@ class PoseInverter(nn.Module):
             )
         # Each vertex is un-posed on its own, so vertices far off the body stay far off it; name the
         # input, not the rest mesh prepare_rest would blame for it (as "not in metres").
-        low, high = torch.aminmax(rest.detach(), dim=1)
-        size = torch.linalg.vector_norm(high - low, dim=-1)
-        lo, hi = REST_EXTENT_M
-        far = ~((size >= lo) & (size <= hi))
-        if bool(far.any()):
-            k = int(torch.nonzero(far)[0])
+        far = outside_rest_extent(rest)
+        if far is not None:
+            lo, hi = REST_EXTENT_M
             raise ValueError(
-                f"vertices: mesh {k} un-poses to a rest shape {float(size[k]):.3g} m across, outside the "
+                f"vertices: mesh {far[0]} un-poses to a rest shape {far[1]:.3g} m across, outside the "
                 f"[{lo:g}, {hi:g}] m of a body: vertices far off the body (outliers), or not a body mesh in metres?"
             )
         return layer.prepare_rest(rest)
