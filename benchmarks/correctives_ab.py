@@ -30,9 +30,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def model_of(rev: str):  # noqa: ANN201 (the other revision's Correctives class)
     """``Correctives`` of ``model.py`` at ``rev``, imported as ``unibody.correctives._rev_model``."""
-    text = subprocess.run(
-        ["git", "show", f"{rev}:src/unibody/correctives/model.py"], cwd=ROOT, check=True, capture_output=True, text=True
-    ).stdout
+    got = subprocess.run(
+        ["git", "show", f"{rev}:src/unibody/correctives/model.py"], cwd=ROOT, capture_output=True, text=True
+    )
+    if got.returncode:
+        why = got.stderr.strip().splitlines()[-1] if got.stderr.strip() else f"git exit {got.returncode}"
+        raise SystemExit(f"--rev: no src/unibody/correctives/model.py at {rev!r} ({why})")
+    text = got.stdout
     path = Path(tempfile.mkdtemp()) / "model.py"
     path.write_text(text)
     spec = importlib.util.spec_from_file_location("unibody.correctives._rev_model", path)
