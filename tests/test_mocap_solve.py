@@ -17,7 +17,7 @@ import torch
 
 from unibody.body import BodyLayer
 from unibody.geometry.rotations import axis_angle_to_matrix
-from unibody.mocap._marker_body import BODY_JOINTS, MarkerBody, Weights, _row_weights
+from unibody.mocap._marker_body import BODY_JOINTS, MarkerBody, _row_weights
 from unibody.mocap.layout import MarkerLayout, place_markers
 from unibody.mocap.solve import (
     SolveConfig,
@@ -184,14 +184,13 @@ def test_robust_costs_and_row_weights_agree():
     g = torch.Generator().manual_seed(0)
     r = (0.05 * torch.randn(2, 7, 3, generator=g, dtype=torch.float64)).requires_grad_()
     data = 200 * torch.rand(2, 7, generator=g, dtype=torch.float64)
-    wt = Weights(data, torch.ones(2, dtype=torch.float64), robust=0.01)
-    cost, w2 = _row_weights(r, wt)
+    cost, w2 = _row_weights(r, data, 0.01)
     (grad,) = torch.autograd.grad(cost.sum(), r)
     torch.testing.assert_close(grad, 2 * w2[..., None] * r.detach())
     tiny = 1e-5 * r.detach()
-    squares, _ = _row_weights(tiny, Weights(wt.data, wt.prior))
-    torch.testing.assert_close(_row_weights(tiny, wt)[0], squares, rtol=1e-6, atol=0)
-    assert bool((w2 < wt.data.square()).all())
+    squares, _ = _row_weights(tiny, data, 0.0)
+    torch.testing.assert_close(_row_weights(tiny, data, 0.01)[0], squares, rtol=1e-6, atol=0)
+    assert bool((w2 < data.square()).all())
 
 
 def test_unsolved_frames_are_interpolated(layer, layout):
@@ -294,6 +293,34 @@ def test_pick_frames_is_tolerant():
     assert 3 not in pick_frames(vis[:5], 5).tolist()
 
 
+def test_a_glitch_frame_neither_is_held_back_nor_drags_its_neighbours(layout, clean):
+    """Frame 10 with the whole subject displaced 20 m (a broken export). Before, the quadratic
+    temporal prior dragged the frames after it towards it (here at 60 Hz: 2 m off in the next
+    frame, 0.1 m in the one after; a 40 m glitch in another take held its own frame 8 m back and
+    the next five 30 m to 80 mm off); the prior is now Cauchy past 1000 m/s^2
+    (``acceleration_robust``): every frame fits its own markers as in the clean solve."""
+    points, fps = clean[0], 60.0  # a prior strong enough to hold a frame back
+    ref = solve_markers(points, layout, fps=fps)
+    glitch = points.clone()
+    glitch[10] += 20.0
+    res = solve_markers(glitch, layout, fps=fps)
+    assert float(res.residual.median(1).values.max()) < 0.002
+    assert float(res.residual.mean()) < 1.5 * float(ref.residual.mean())
+    assert abs(float(res.transl[10, 0] - ref.transl[10, 0]) - 20.0) < 0.01
+    squares = solve_markers(glitch, layout, fps=fps, config=SolveConfig(acceleration_robust=0.0))
+    assert float(squares.residual.median(1).values[11]) > 0.5  # the old prior (kept on request): 2 m
+
+
+def test_a_long_walk_is_metres_not_millimetres(layout, clean):
+    """The subject travels 60 m over the take: the solve used to refuse it ("coordinates span 60
+    units; millimetres?"); units are now judged as the labeler judges them, by the distances
+    between a frame's markers."""
+    points, _, ref = clean
+    walk = points + torch.linspace(0, 60, len(points))[:, None, None] * torch.tensor([1.0, 0.0, 0.0])
+    res = solve_markers(walk, layout, fps=FPS)
+    assert float(res.residual.mean()) < 1.5 * float(ref.residual.mean())
+
+
 def test_input_errors(layout):
     good = torch.zeros(4, len(layout), 3)
     with pytest.raises(ValueError, match=r"points: expected shape \(T, M, 3\)"):
@@ -326,6 +353,7 @@ def test_input_errors(layout):
         ("shape_components", 200, "shape_components"),
         ("pose_prior_weight", float("nan"), "pose_prior_weight"),
         ("robust", -0.01, "robust: expected a value >= 0"),
+        ("acceleration_robust", -1.0, "acceleration_robust: expected a value >= 0"),
     ],
 )
 def test_config_errors(field, value, message):

@@ -299,6 +299,8 @@ class Weights:
     ``robust`` (m) > 0 makes the data term Cauchy: a marker at distance d from its model marker
     costs ``w^2 c^2 log(1 + d^2 / c^2)`` (about ``w^2 d^2`` below c, growing only
     logarithmically beyond), so a mislabelled point does not drag the body; 0 keeps squares.
+    ``temporal_robust`` (m) does the same for the temporal term (a glitch frame does not drag
+    its neighbours).
     """
 
     data: torch.Tensor
@@ -306,29 +308,31 @@ class Weights:
     temporal: torch.Tensor | None = None
     target: torch.Tensor | None = None  # (B, M, 3) temporal targets
     robust: float = 0.0
+    temporal_robust: float = 0.0
 
 
-def _row_weights(r: torch.Tensor, wt: Weights) -> tuple[torch.Tensor, torch.Tensor]:
-    """Data costs (B, M) of residuals r (B, M, 3) (0 where missing) and their Gauss-Newton row weights.
+def _row_weights(r: torch.Tensor, w: torch.Tensor, robust: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Costs (B, M) of residuals r (B, M, 3) with weights w (B, M) and their Gauss-Newton row weights.
 
-    Squares: ``w^2 d^2`` and ``w^2``. Cauchy: ``w^2 c^2 log(1 + d^2 / c^2)`` and ``w^2 / (1 + d^2 / c^2)``
-    (IRLS: the cost's gradient is that weight times 2 r).
+    Squares (robust 0): ``w^2 d^2`` and ``w^2``. Cauchy (scale c = robust):
+    ``w^2 c^2 log(1 + d^2 / c^2)`` and ``w^2 / (1 + d^2 / c^2)`` (IRLS: the cost's gradient is
+    that weight times 2 r).
     """
-    d2, w2 = r.square().sum(-1), wt.data.square()
-    if wt.robust <= 0:
+    d2, w2 = r.square().sum(-1), w.square()
+    if robust <= 0:
         return w2 * d2, w2
-    c2 = wt.robust**2
+    c2 = robust**2
     return w2 * c2 * torch.log1p(d2 / c2), w2 / (1 + d2 / c2)
 
 
 def frame_cost(body, x, local, obs, wt: Weights) -> torch.Tensor:
     """(B,) weighted cost: data (squares or Cauchy) + pose prior + temporal."""
-    data, _ = _row_weights(torch.nan_to_num(x - obs), wt)
+    data, _ = _row_weights(torch.nan_to_num(x - obs), wt.data, wt.robust)
     cost = data.sum(1)
     rp, _ = body.prior(local, None)
     cost = cost + wt.prior.square() * rp.square().sum((1, 2))
     if wt.temporal is not None:
-        cost = cost + ((x - wt.target) * wt.temporal[..., None]).square().sum((1, 2))
+        cost = cost + _row_weights(x - wt.target, wt.temporal, wt.temporal_robust)[0].sum(1)
     return cost
 
 
@@ -337,13 +341,14 @@ def frame_system(body, x, jac, g_rot, local, obs, wt: Weights):
     ``(cost, H (B, N, N), g (B, N), row weights^2 (B, M))``; g = J^T W r."""
     b, m = x.shape[:2]
     r = torch.nan_to_num(x - obs)
-    data, w2 = _row_weights(r, wt)
+    data, w2 = _row_weights(r, wt.data, wt.robust)
     r = r * w2[..., None]
     rp, jp = body.prior(local, g_rot)
     cost = data.sum(1) + wt.prior.square() * rp.square().sum((1, 2))
     if wt.temporal is not None:
-        t2, rt = wt.temporal.square(), x - wt.target
-        cost = cost + (rt * wt.temporal[..., None]).square().sum((1, 2))
+        rt = x - wt.target
+        tc, t2 = _row_weights(rt, wt.temporal, wt.temporal_robust)
+        cost = cost + tc.sum(1)
         r = r + rt * t2[..., None]
         w2 = w2 + t2
     jf = jac.reshape(b, 3 * m, -1)

@@ -10,7 +10,7 @@ from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ._marker_body import MarkerBody, Weights, frame_cost, lm_frames, lm_iteration
 
 
-def _temporal_fn(x_hist, frames, w_data, w_prior, w_acc: float, robust: float) -> Callable:
+def _temporal_fn(x_hist, frames, w_data, w_prior, w_acc: float, robust: float, temporal_robust: float) -> Callable:
     """Weights with block-Jacobi temporal targets for the frames of the window.
 
     A frame whose previous and next frames (in time) are both in ``x_hist`` or the window gets
@@ -20,7 +20,8 @@ def _temporal_fn(x_hist, frames, w_data, w_prior, w_acc: float, robust: float) -
     so the coupling cannot diverge (a one-sided constant-velocity target 2 x_{t-1} - x_{t-2}
     did, under strong weights: it doubles the neighbours' errors).
     ``x_hist`` (H <= 2, M, 3) are model markers of retired frames; ``frames`` the frame indices
-    of the H retired frames and then of the window.
+    of the H retired frames and then of the window. ``temporal_robust`` (m): the Cauchy scale of
+    that residual (see :class:`~.solve_config.SolveConfig`'s ``acceleration_robust``).
     """
     h = x_hist.shape[0]
     gap = frames[1:] - frames[:-1]
@@ -31,7 +32,7 @@ def _temporal_fn(x_hist, frames, w_data, w_prior, w_acc: float, robust: float) -
         seq = torch.cat([x_hist, x])
         prev = torch.cat([seq[:1], seq[:-1]])
         nxt = torch.cat([seq[1:], seq[-1:]])
-        return Weights(w_data, w_prior, w, ((prev + nxt) / 2)[h:], robust)
+        return Weights(w_data, w_prior, w, ((prev + nxt) / 2)[h:], robust, temporal_robust)
 
     return fn
 
@@ -74,6 +75,7 @@ class _Stage2:
         self.w_data = vis.to(dt) / cfg.marker_std * (m / nvis.clamp_min(1).to(dt)).sqrt()[:, None]
         self.w_prior = cfg.pose_prior_weight * (1 + cfg.missing_prior_gain * (m - nvis).to(dt) / m).sqrt()
         self.w_acc = 2 * fps**2 / cfg.acceleration_std
+        self.acc_robust = cfg.acceleration_robust / (2 * fps**2)  # m: that acceleration's residual
         self.local = body.relaxed_local.expand(t_count, -1, -1, -1).clone()  # retired estimates
         self.transl = obs.new_zeros(t_count, 3)
         self.recent: list[float] = []  # costs of the last retired frames
@@ -203,7 +205,7 @@ def stage2(body: MarkerBody, ident, anchors, p, obs, vis, cfg, fps: float, progr
             lam = torch.cat([lam, lam.new_full((1,), 1e-3)])
         fr = torch.tensor(win, device=obs.device)
         frames_t = torch.tensor(retired + win, device=obs.device)
-        fn = _temporal_fn(hist_x, frames_t, st.w_data[fr], st.w_prior[fr], st.w_acc, cfg.robust)
+        fn = _temporal_fn(hist_x, frames_t, st.w_data[fr], st.w_prior[fr], st.w_acc, cfg.robust, st.acc_robust)
         local, transl, lam, x = lm_iteration(body, ident, anchors, p, local, transl, obs[fr], fn, lam)
         if len(win) == cfg.window or added == len(frames):
             f = win.pop(0)

@@ -52,7 +52,9 @@ def unibody_to_lab(points: Points, up: str = "z") -> Points:
 
 
 def check_points(points: torch.Tensor, spec: str, m: int | None = None, name: str = "points") -> torch.Tensor:
-    """Check solver input: a float tensor of ``spec`` (with M = ``m``), finite or NaN, not all missing, in metres."""
+    """Check solver input: a float tensor of ``spec`` (with M = ``m``), finite or NaN, not all missing,
+    in metres (:func:`check_marker_units`: the labeler's rule, so a sequence it labels is one the
+    solve takes; how far the subject travels or a stray point lies does not matter)."""
     check_tensor(points, name)
     check_shape(points, spec, name=name, sizes={} if m is None else {"M": m})
     if not points.is_floating_point():
@@ -62,9 +64,7 @@ def check_points(points: torch.Tensor, spec: str, m: int | None = None, name: st
     finite = points[torch.isfinite(points)]
     if finite.numel() == 0:
         raise ValueError(f"{name}: every marker is missing (all NaN)")
-    extent = float((finite.max() - finite.min()).abs())
-    if extent > 50.0:
-        raise ValueError(f"{name}: coordinates span {extent:.0f} units; expected metres (millimetres? divide by 1000)")
+    check_marker_units(points.detach().reshape(-1, *points.shape[-2:]).cpu().numpy(), name)
     return points
 
 

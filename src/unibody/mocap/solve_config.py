@@ -9,7 +9,14 @@ __all__ = ["SolveConfig"]
 
 
 _INT_FIELDS = ("shape_components", "stage1_frames", "stage1_iters", "window", "recheck_every", "min_markers")
-_NONNEGATIVE_FIELDS = ("pose_prior_weight", "shape_prior_weight", "missing_prior_gain", "min_visible", "robust")
+_NONNEGATIVE_FIELDS = (
+    "pose_prior_weight",
+    "shape_prior_weight",
+    "missing_prior_gain",
+    "min_visible",
+    "robust",
+    "acceleration_robust",
+)
 
 
 @dataclass(frozen=True)
@@ -42,6 +49,10 @@ class SolveConfig:
             offered to the window, so a wrong minimum (a limb turned the wrong way) carried
             by the warm starts does not last.
         acceleration_std: m/s^2, std of a model marker's acceleration (temporal prior).
+        acceleration_robust: m/s^2, Cauchy scale of that prior (0: squares): past it the prior
+            gives way to the markers, so a glitch frame (the whole subject displaced) neither is
+            held back nor drags the frames around it. 1000 m/s^2 (about 100 g) is several times
+            the peak of a running foot's strike.
         missing_prior_gain: the pose-prior weight is multiplied by sqrt(1 + gain * missing / M).
         min_visible: a frame is solved when at least this fraction of the markers is visible...
         min_markers: ...and at least this many (else it is interpolated and flagged unsolved).
@@ -62,6 +73,7 @@ class SolveConfig:
     window: int = 4
     recheck_every: int = 30
     acceleration_std: float = 100.0
+    acceleration_robust: float = 1000.0
     missing_prior_gain: float = 2.5
     min_visible: float = 0.3
     min_markers: int = 6
