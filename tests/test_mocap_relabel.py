@@ -9,7 +9,8 @@ from test_mocap_solve import FPS, K, _synthetic
 from unibody.body import BodyLayer
 from unibody.mocap.corrupt import corrupt_frames
 from unibody.mocap.layout import MarkerLayout
-from unibody.mocap.relabel import RelabelConfig, assign_points, relabel
+from unibody.mocap.relabel import RelabelConfig, assign_points, relabel, relabel_tracklets
+from unibody.mocap.tracklets import settle_tracklets
 
 NAN = float("nan")
 
@@ -115,3 +116,23 @@ def test_relabel_leaves_rarely_found_markers_to_the_labeler(scrambled):
     assert acc >= 0.995
     free, _ = relabel(pts, rare, layout, fps=FPS, config=RelabelConfig(support=0.0))
     assert float((free == k)[batch.labels == k].float().mean()) > 0.9
+
+
+def test_labels_too_few_for_a_solve_are_left_as_they_are(scrambled):
+    """Labels that name fewer markers per frame than a solve needs (13 of 41): before, the check's
+    solve refused the sequence ("points: every marker is missing" with none, "no frame has 3 or
+    more" with two) or solved every frame from nothing; now the check says it is skipped and the
+    labels stand (for tracklets: the settled spans)."""
+    layout, pts, _, wrong = scrambled
+    m = len(layout)
+    for keep in (0, 2, 12):
+        few = torch.where(wrong < keep, wrong, m)
+        lines: list[str] = []
+        out, result = relabel(pts, few, layout, fps=FPS, progress=lines.append)
+        assert result is None and torch.equal(out, few)
+        need = "body check skipped: no frame has the 13 labelled markers a body solve needs"
+        assert lines == [f"{need} (the most: {keep})"]
+        prob = torch.nn.functional.one_hot(few, m + 1).double()
+        out, result = relabel_tracklets(pts, prob, layout, fps=FPS, progress=lines.append)
+        assert result is None and torch.equal(out, settle_tracklets(prob, torch.isfinite(pts).all(-1)))
+        assert len(lines) == 2 and lines[1].startswith(need)  # the most of the settled labels

@@ -331,6 +331,9 @@ def test_input_errors(layout):
         solve_markers(good + torch.linspace(0, 2000, 41)[None, :, None], layout)
     with pytest.raises(ValueError, match="all NaN"):
         solve_markers(torch.full_like(good, float("nan")), layout)
+    few = torch.randn(4, len(layout), 3).index_fill(1, torch.arange(5, len(layout)), float("nan"))
+    with pytest.raises(ValueError, match=r"points: no frame has the 13 visible markers a solve needs .* one frame: 5"):
+        solve_markers(few, layout)  # before: every frame interpolated from none, markers 1.1 m off
     with pytest.raises(ValueError, match="got inf"):
         solve_markers(good.index_fill(0, torch.tensor([0]), float("inf")), layout)
     with pytest.raises(TypeError, match="float32 or float64"):

@@ -67,7 +67,7 @@ class _Stage2:
     def __init__(self, body: MarkerBody, ident, anchors, p, obs, vis, cfg, fps: float) -> None:
         t_count, m = vis.shape
         nvis = vis.sum(1)
-        self.solved = nvis >= max(cfg.min_markers, int(cfg.min_visible * m + 0.999))
+        self.solved = cfg.solvable(vis)
         self.body, self.ident, self.anchors, self.p = body, ident, anchors, p
         self.obs, self.vis, self.cfg = obs, vis, cfg
         dt = obs.dtype

@@ -268,7 +268,9 @@ def label_sequence(
     # Far points (reflections, other subjects, absurd values) never reach the labeler or the body check.
     pts = torch.as_tensor(lab_to_unibody(np.where(near[..., None], raw, np.nan), up=up))  # float64
     null = model.num_labels
-    if not tracklets:
+    if not near.any():  # nothing to label (no column, or no point near a cluster): the report says why
+        frame = torch.full(near.shape, null, dtype=torch.int64)
+    elif not tracklets:
         frame = label_frames(model, pts.to(model.bin_score), batch=batch).cpu()  # (T, N), L = null
         if layout is not None:
             from .relabel import relabel

@@ -157,7 +157,7 @@ def relabel(
     config: RelabelConfig | None = None,
     solve: SolveConfig | None = None,
     progress: Callable[[str], None] | None = None,
-) -> tuple[torch.Tensor, SolveResult]:
+) -> tuple[torch.Tensor, SolveResult | None]:
     """Check a labelling against a body solved from it (see the module).
 
     Args:
@@ -173,7 +173,8 @@ def relabel(
 
     Returns:
         (T, N) int64 labels in [0, M] and the last body solve (from the labels before the last
-        assignment).
+        assignment); None, and the labels as given, when no frame has the labelled markers a
+        solve needs (:meth:`SolveConfig.needed`: nothing to check them against).
     """
     cfg = RelabelConfig() if config is None else config
     check_shape(points, "T N 3", name="points")
@@ -181,14 +182,18 @@ def relabel(
     check_frame_labels(labels, torch.isfinite(points).all(-1), m, "labels")
     say = progress or (lambda _: None)
     labels = labels.long()
+    result = None
     for k in range(cfg.passes):
         observed = labelled_markers(points.double(), labels, m)
+        if _unsolvable(observed, solve, say):
+            break
         marked = observed.clone()
         result = solve_markers(marked, layout, config=solve, fps=fps)
         far = result.residual.to(marked) > cfg.drop
         if bool(far.any()):
             marked[far] = math.nan
-            result = solve_markers(marked, layout, config=solve, fps=fps)
+            if _solvable(marked, solve):  # else the solve with them stands
+                result = solve_markers(marked, layout, config=solve, fps=fps)
         near = (observed - result.markers.to(observed)).norm(dim=-1) <= cfg.drop
         checked = near.double().mean(0) >= cfg.support
         new = assign_points(points, result.markers, labels, cfg, checked.cpu())
@@ -197,6 +202,22 @@ def relabel(
         say(f"pass {k + 1}: dropped {int(far.sum())} far labels, changed {changed} labels{left}")
         labels = new
     return labels, result
+
+
+def _solvable(observed: torch.Tensor, solve: SolveConfig | None) -> bool:
+    """Whether some frame of the labelled markers (T, M, 3) has the markers a solve needs."""
+    return bool((SolveConfig() if solve is None else solve).solvable(torch.isfinite(observed).all(-1)).any())
+
+
+def _unsolvable(observed: torch.Tensor, solve: SolveConfig | None, say: Callable[[str], None]) -> bool:
+    """Whether no frame of the labelled markers (T, M, 3) can be solved; says so."""
+    if _solvable(observed, solve):
+        return False
+    vis = torch.isfinite(observed).all(-1)
+    most = int(vis.sum(1).max()) if vis.numel() else 0
+    need = (SolveConfig() if solve is None else solve).needed(vis.shape[1])
+    say(f"body check skipped: no frame has the {need} labelled markers a body solve needs (the most: {most})")
+    return True
 
 
 def body_stride(fps: float, rate: float = BODY_RATE) -> int:
@@ -209,12 +230,18 @@ def body_stride(fps: float, rate: float = BODY_RATE) -> int:
     return max(1, int(fps // rate))
 
 
-def _solve_strided(points: torch.Tensor, layout: MarkerLayout, fps: float, solve: SolveConfig | None, k: int):
-    """(T, M, 3) model markers (and the solve) from every k-th frame, linearly interpolated between them."""
-    t = len(points)
+def _strided(t: int, k: int) -> torch.Tensor:
+    """Every k-th of t frames, and the last."""
     picked = torch.arange(0, t, k)
-    if int(picked[-1]) != t - 1:
-        picked = torch.cat([picked, torch.tensor([t - 1])])
+    return picked if int(picked[-1]) == t - 1 else torch.cat([picked, torch.tensor([t - 1])])
+
+
+def _solve_strided(
+    points: torch.Tensor, picked: torch.Tensor, layout: MarkerLayout, fps: float, solve: SolveConfig | None, k: int
+):
+    """(T, M, 3) model markers (and the solve) from the ``picked`` frames (:func:`_strided`),
+    linearly interpolated between them."""
+    t = len(points)
     result = solve_markers(points[picked], layout, config=solve, fps=fps / k)
     if k == 1:
         return result.markers, result
@@ -237,7 +264,7 @@ def relabel_tracklets(
     solve: SolveConfig | None = None,
     weight: float = 0.5,
     progress: Callable[[str], None] | None = None,
-) -> tuple[torch.Tensor, SolveResult]:
+) -> tuple[torch.Tensor, SolveResult | None]:
     """Tracklet labels checked by a body: the body's labels are more evidence for the spans.
 
     :func:`~unibody.mocap.tracklets.settle_tracklets` labels the sequence; one body is solved
@@ -261,7 +288,8 @@ def relabel_tracklets(
         progress: called with one-line reports.
 
     Returns:
-        (T, N) int64 labels in [0, M] and the body solve (of the solved frames only).
+        (T, N) int64 labels in [0, M] and the body solve (of the solved frames only); the settled
+        labels and None when no frame has the labelled markers a solve needs.
     """
     cfg = RelabelConfig() if config is None else config
     check_shape(points, "T N 3", name="points")
@@ -275,7 +303,10 @@ def relabel_tracklets(
     labels = settle_tracklets(prob, vis, spans=spans)
     observed = labelled_markers(points.double(), labels, m)
     k = body_stride(fps)
-    markers, result = _solve_strided(observed, layout, fps, solve, k)
+    picked = _strided(len(observed), k)
+    if _unsolvable(observed[picked], solve, say):
+        return labels, None
+    markers, result = _solve_strided(observed, picked, layout, fps, solve, k)
     near = (observed - markers).norm(dim=-1) <= cfg.drop
     checked = near.double().mean(0) >= cfg.support
     body = assign_points(points, markers, labels, cfg, checked)

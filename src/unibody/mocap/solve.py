@@ -82,9 +82,12 @@ def solve_markers(
     body = MarkerBody(config.shape_components, obs.device)
     anchors = layout.vertices.to(obs.device)
     distance = layout.distance.to(obs)
+    if not bool(config.solvable(vis).any()):
+        raise ValueError(
+            f"points: no frame has the {config.needed(vis.shape[1])} visible markers a solve needs "
+            f"(SolveConfig.min_markers, min_visible); the most in one frame: {int(vis.sum(1).max())}"
+        )
     picked = pick_frames(vis, config.stage1_frames).to(obs.device)
-    if picked.numel() == 0:
-        raise ValueError("points: no frame has 3 or more visible markers")
     s1 = stage1(
         body,
         obs[picked],

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
+import torch
+
 __all__ = ["SolveConfig"]
 
 
@@ -96,3 +98,12 @@ class SolveConfig:
             raise ValueError(f"shape_components: expected at most 128 (the PCA asset's K), got {self.shape_components}")
         if self.min_visible > 1:
             raise ValueError(f"min_visible: expected a fraction in [0, 1], got {self.min_visible}")
+
+    def needed(self, num_markers: int) -> int:
+        """Visible markers a frame needs to be solved (else it is interpolated): ``min_markers``
+        and the ``min_visible`` fraction of ``num_markers``."""
+        return max(self.min_markers, int(self.min_visible * num_markers + 0.999))
+
+    def solvable(self, visible: torch.Tensor) -> torch.Tensor:
+        """(T,) bool: the frames of a (T, M) visibility mask with :meth:`needed` markers."""
+        return visible.sum(-1) >= self.needed(visible.shape[-1])
