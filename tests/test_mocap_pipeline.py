@@ -323,7 +323,8 @@ def test_label_sequence_and_cli_on_cuda(tmp_path):
 def test_cli_layout_adds_the_sessions_other_markers(tmp_path, capsys):
     """`unibody mocap layout`: the base layout's markers fitted, each other point of the frame named."""
     pig, cmu = MarkerLayout.load("pig39"), MarkerLayout.load("cmu41")
-    others = [x for x in cmu.labels if x not in pig.labels][:4]  # RBAC, LFWT, RFWT, LBWT: beside PiG markers
+    # LFWT, RFWT, LBWT, RBWT: beside PiG markers (RBAC, on RBAK's spot, would be a copy of it: left out)
+    others = [x for x in cmu.labels if x not in pig.labels and cmu.vertices[cmu.index(x)] not in pig.vertices][:4]
     both = MarkerLayout("both", (*pig.labels, *others), torch.cat([pig.vertices, cmu.subset(others).vertices]),
                         torch.cat([pig.distance, cmu.subset(others).distance]))  # fmt: skip
     markers, _ = smooth_sequence(both, frames=3)
@@ -340,6 +341,35 @@ def test_cli_layout_adds_the_sessions_other_markers(tmp_path, capsys):
     code = main(["mocap", "layout", str(tmp_path / "session.c3d"), "--frame", "3", "--out", str(tmp_path / "x.json")])
     assert code == 2
     assert "--frame: expected a frame in 0..2" in capsys.readouterr().err
+
+
+def test_frame_layout_leaves_out_points_that_are_no_marker_of_the_body():
+    """Before, a reflection 10 m (or 100 km) away and a copy of a labelled marker each became a new
+    marker of the session layout (on the nearest vertex, 5 cm off the skin; or on the marker's
+    spot), and a frame with every label on one point, one label 10 m away or in millimetres gave
+    a layout too. Now the first two are left out and counted, the others refused by name."""
+    from unibody.mocap.pipeline import frame_layout
+
+    pig = MarkerLayout.load("pig39")
+    markers, _ = smooth_sequence(pig, frames=1)
+    lab = unibody_to_lab(markers.numpy(), up="z")
+    extra = np.concatenate([lab[:, :1] + [10.0, 0, 0], lab[:, :1] + [1e5, 0, 0], lab[:, 5:6], lab[:, :1] + 0.1], 1)
+    names = (*pig.labels, "*0", "*1", "*2", "*3")
+    lines = []
+    seq = MarkerSequence(np.concatenate([lab, extra], 1), names, ("",) * len(names), 100.0)
+    session = frame_layout(seq, pig, frame=0, name="s", progress=lines.append)
+    assert session.labels == (*pig.labels, "X01")  # only the point 10 cm from LFHD
+    assert lines == [
+        "left out 3 of frame 0's 4 other points: 2 farther than 2 m from the body, 1 within 1 mm of another point"
+    ]
+    for change, message in (
+        (lambda p: p * 1000, r"seq: the points are not in metres"),
+        (lambda p: np.broadcast_to(p[:1], p.shape), r"seq: frame 0 has LFHD and RFHD on one point"),
+        (lambda p: p + np.where(np.arange(39)[:, None] == 7, 10.0, 0.0), r"seq: frame 0's \w+ lies farther than 2 m"),
+    ):
+        bad = MarkerSequence(change(lab[0])[None], pig.labels, ("",) * len(pig), 100.0)
+        with pytest.raises(ValueError, match=message):
+            frame_layout(bad, pig, frame=0, name="s")
 
 
 # -- bad input (issue 35 item 14) ----------------------------------------------------------------------

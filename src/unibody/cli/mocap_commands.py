@@ -117,7 +117,9 @@ def run_mocap_layout(src: Path, out: Path, base: str, frame: int, up: str, prefi
     layout = MarkerLayout.load(base)
     t = time.perf_counter()
     with _about(src):
-        session = frame_layout(seq, layout, frame=frame, name=out.stem, up=up, prefix=prefix)
+        session = frame_layout(
+            seq, layout, frame=frame, name=out.stem, up=up, prefix=prefix, progress=lambda line: _progress("  " + line)
+        )
     with atomic_path(out) as tmp:
         session.save(tmp)
     print(

@@ -341,24 +341,53 @@ def frame_layout(
     up: str = "z",
     prefix: str = "X",
     config: SolveConfig | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> MarkerLayout:
     """A session's layout from one frame: ``base``'s markers fitted, and every other point of it.
 
     The file's points labelled with ``base`` labels are fitted (:func:`derive_layout`, starting
     from ``base``'s placement; labels absent or missing in that frame keep it); each other
     point visible in that frame (unlabelled ``*`` points, other protocols' markers) becomes a
-    new marker ``{prefix}01``, ... in the order of the file's columns. Labels: ``base``'s, then
-    the new ones.
+    new marker ``{prefix}01``, ... in the order of the file's columns, except points that are no
+    marker of this body: farther than ``FAR_RADIUS`` from the frame's main cluster
+    (:func:`main_cluster`: reflections, other subjects) or within ``COINCIDENT_TOL`` of a labelled
+    marker or an earlier point (copies); ``progress`` is told how many were left out. Labels:
+    ``base``'s, then the new ones.
+
+    Raises:
+        ValueError: ``frame`` out of range, or ``seq`` not in metres, with fewer than 6 of
+            ``base``'s labels in that frame, or with two labels on one point (within 1 mm).
     """
     if not 0 <= frame < seq.num_frames:
         raise ValueError(f"frame: expected 0 <= frame < {seq.num_frames}, got {frame}")
+    check_marker_units(seq.points[frame : frame + 1], "seq")
     pts = lab_to_unibody(seq.points[frame], up=up)
     idx = {x: i for i, x in enumerate(seq.labels)}
     known = np.stack([pts[idx[x]] if x in idx else np.full(3, np.nan) for x in base.labels])
     if (seen := int(np.isfinite(known).all(-1).sum())) < 6:
         raise ValueError(f"seq: frame {frame} has {seen} of {base.name}'s labels; need 6 or more")
+    co = find_coincident(known[None]).original[0]
+    if (twice := np.flatnonzero(co != np.arange(len(co)))).size:
+        a, b = base.labels[co[twice[0]]], base.labels[twice[0]]
+        raise ValueError(f"seq: frame {frame} has {a} and {b} on one point (within 1 mm): a point labelled twice?")
+    near = main_cluster(known[None])[0]
+    if (off := np.flatnonzero(np.isfinite(known).all(-1) & ~near)).size:
+        raise ValueError(
+            f"seq: frame {frame}'s {base.labels[off[0]]} lies farther than {FAR_RADIUS:g} m from the other "
+            f"labelled markers ({off.size} such): mislabelled?"
+        )
     others = np.array([pts[i] for i, x in enumerate(seq.labels) if x not in base.labels]).reshape(-1, 3)
     others = others[np.isfinite(others).all(-1)]
+    far = np.linalg.norm(others - np.median(known[near], axis=0), axis=-1) > FAR_RADIUS
+    both = np.concatenate([known, others])[None]
+    copy = (find_coincident(both).original[0] != np.arange(both.shape[1]))[len(known) :]
+    if progress is not None and (far | copy).any():
+        progress(
+            f"left out {int((far | copy).sum())} of frame {frame}'s {len(others)} other points: "
+            f"{int(far.sum())} farther than {FAR_RADIUS:g} m from the body, "
+            f"{int((copy & ~far).sum())} within {1000 * COINCIDENT_TOL:g} mm of another point"
+        )
+    others = others[~(far | copy)]
     extra = torch.as_tensor(others) if len(others) else None
     from .solve import derive_layout
 
