@@ -117,7 +117,7 @@ def test_save_load_round_trip(tmp_path, bodies):
 def test_load_rejects_other_files(tmp_path):
     p = tmp_path / "x.pt"
     torch.save({"format": "something"}, p)
-    with pytest.raises(ValueError, match="path"):
+    with pytest.raises(ValueError, match=r"x.pt: not a unibody.panoman/1 file .*\(format 'something', expected"):
         PanoMan.load(p)
     with pytest.raises(FileNotFoundError, match="path"):
         PanoMan.load(tmp_path / "missing.pt")

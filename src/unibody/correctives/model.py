@@ -31,6 +31,7 @@ from torch import nn
 
 from ..geometry.rotations import matrix_to_rot6d
 from ..geometry.sparse import csr
+from ..io.weights import read_weights, rebuilding
 
 __all__ = ["Correctives", "default_weights_path", "size_of", "LIMB_BONES"]
 
@@ -549,6 +550,8 @@ class Correctives(nn.Module):
 
         Raises:
             FileNotFoundError: ``path`` does not exist (the message names it).
+            ValueError: ``path`` is no such file (other bytes, missing or malformed entries,
+                NaN/inf weights); the message names it.
         """
         path = default_weights_path(procedural) if path is None else Path(path)
         if not path.is_file():
@@ -556,5 +559,9 @@ class Correctives(nn.Module):
                 f"correctives: weights file {str(path)!r} not found (expected a file written by "
                 "scripts/train_correctives.py train)"
             )
+        what = "correctives weights written by scripts/train_correctives.py"
+        state = read_weights(path, what)
+        with rebuilding(path, what):
+            model = cls.from_state(state)
         # Frozen: posing with them builds no autograd graph unless the pose or the identity needs one.
-        return cls.from_state(torch.load(path, map_location="cpu", weights_only=True)).requires_grad_(False)
+        return model.requires_grad_(False)

@@ -51,6 +51,7 @@ from torch import nn
 from .._checks import check_finite, check_like, check_shape
 from ..geometry.rotations import rotation_angle
 from ..io.atomic import atomic_path
+from ..io.weights import read_weights, rebuilding
 from .orient import NUDGES, TILTS, fit_rotation
 from .sinkhorn import log_sinkhorn
 
@@ -482,23 +483,29 @@ class Labeler(nn.Module):
 
     @classmethod
     def load(cls, path: str | Path, *, map_location: str | torch.device = "cpu") -> Labeler:
-        """Read a labeler written by :meth:`save` (safe load: ``weights_only=True``)."""
-        payload = torch.load(Path(path), map_location=map_location, weights_only=True)
-        if not isinstance(payload, dict) or payload.get("format") != LABELER_FORMAT:
-            found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
-            raise ValueError(f"{path}: expected a {LABELER_FORMAT!r} file, got {found!r}")
-        cfg = dict(payload["config"])
-        names = payload["label_names"]
-        parts = {}
-        if "orienter" in cfg:  # placeholders, filled by the state dict
-            ocfg = dict(cfg.pop("orienter"))
-            onames = ocfg.pop("label_names", names)
-            n = ocfg["num_labels"]
-            parts = {"orienter": cls.from_config(LabelerConfig.from_dict(ocfg), label_names=onames),
-                     "template": torch.zeros(n, 3), "torso": torch.arange(n) < 4}  # fmt: skip
-        model = cls.from_config(LabelerConfig.from_dict(cfg), label_names=names, **parts)
-        model.load_state_dict(payload["state_dict"])
-        model.meta = payload["meta"]
+        """Read a labeler written by :meth:`save` (safe load: ``weights_only=True``).
+
+        Raises:
+            ValueError: ``path`` is no such file (other bytes, another model, missing or
+                malformed entries, NaN/inf weights); the message names it.
+        """
+        what = "a labeler written by Labeler.save"
+        payload = read_weights(path, what, map_location=map_location)
+        if payload.get("format") != LABELER_FORMAT:
+            raise ValueError(f"{path}: not {what} (format {payload.get('format')!r}, expected {LABELER_FORMAT!r})")
+        with rebuilding(path, what):
+            cfg = dict(payload["config"])
+            names = payload["label_names"]
+            parts = {}
+            if "orienter" in cfg:  # placeholders, filled by the state dict
+                ocfg = dict(cfg.pop("orienter"))
+                onames = ocfg.pop("label_names", names)
+                n = ocfg["num_labels"]
+                parts = {"orienter": cls.from_config(LabelerConfig.from_dict(ocfg), label_names=onames),
+                         "template": torch.zeros(n, 3), "torso": torch.arange(n) < 4}  # fmt: skip
+            model = cls.from_config(LabelerConfig.from_dict(cfg), label_names=names, **parts)
+            model.load_state_dict(payload["state_dict"])
+            model.meta = payload["meta"]
         return model
 
 

@@ -45,12 +45,15 @@ class BodyOccupancy(nn.Module):
         path = Path(path) if path is not None else default_weights_path()
         if not path.exists():
             raise FileNotFoundError(f"path: no occupancy weights at {path}")
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        from ..io.weights import read_weights, rebuilding
         from ..rig import Rig
 
+        what = "occupancy weights written by scripts/train_occupancy.py"
+        state = read_weights(path, what)
         rig = Rig.canonical()
-        net = OccupancyNet(BodyParts.canonical(), rig.faces, rig.bind_vertices, **state["config"])
-        net.load_state_dict(state["model"])
+        with rebuilding(path, what):
+            net = OccupancyNet(BodyParts.canonical(), rig.faces, rig.bind_vertices, **state["config"])
+            net.load_state_dict(state["model"])
         return cls(net.eval()).requires_grad_(False)
 
     @property

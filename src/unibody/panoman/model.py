@@ -28,6 +28,7 @@ from torch import nn
 from .._checks import check_finite, check_shape
 from ..identity.pca import PCAIdentity
 from ..io.atomic import atomic_path
+from ..io.weights import read_weights, rebuilding
 from ..rig import Rig
 from .mesh import EdgeTopology
 from .nets import MLP, CorrectionNet
@@ -257,20 +258,24 @@ class PanoMan(nn.Module):
         p = default_model_path() if path is None else Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"path: no PanoMan model at {p}; build one with scripts/build_panoman.py")
-        s = torch.load(p, map_location="cpu", weights_only=True)
+        what = f"a {FORMAT} file written by PanoMan.save"
+        s = read_weights(p, what)
         if s.get("format") != FORMAT:
-            raise ValueError(f"path: {p} is not a {FORMAT} file (format {s.get('format')!r})")
-        decs = [
-            Decomposition(**{**d, "index": d["index"].long(), "value": d["value"].float()}) for d in s["decompositions"]
-        ]
-        beta_net = None if s["beta_net"] is None else MLP.from_state(s["beta_net"])
-        correction = None if s["correction"] is None else CorrectionNet.from_state(s["correction"])
-        reg = s.get("joint_regressor")
-        return cls(
-            decs,
-            shape_components=s["shape_components"],
-            beta_net=beta_net,
-            correction=correction,
-            joint_regressor=None if reg is None else tuple(reg),
-            metadata=s["metadata"],
-        )
+            raise ValueError(f"{p}: not {what} (format {s.get('format')!r}, expected {FORMAT!r})")
+        with rebuilding(p, what):
+            decs = [
+                Decomposition(**{**d, "index": d["index"].long(), "value": d["value"].float()})
+                for d in s["decompositions"]
+            ]
+            beta_net = None if s["beta_net"] is None else MLP.from_state(s["beta_net"])
+            correction = None if s["correction"] is None else CorrectionNet.from_state(s["correction"])
+            reg = s.get("joint_regressor")
+            model = cls(
+                decs,
+                shape_components=s["shape_components"],
+                beta_net=beta_net,
+                correction=correction,
+                joint_regressor=None if reg is None else tuple(reg),
+                metadata=s["metadata"],
+            )
+        return model
