@@ -148,6 +148,8 @@ def test_label_sequence_on_mutated_takes(setup, ops, seed, tracklets):
 # now skips the check and says why).
 @example(ops=[("drop", 39)], seed=0, tracklets=True, rate=60.0)
 @example(ops=[("drop", 41)], seed=0, tracklets=False, rate=60.0)
+# Found by CI: one frame at 10 kHz (a static trial) interpolated its strided solve 0 / 0 into NaN markers.
+@example(ops=[("cut", 1)], seed=0, tracklets=True, rate=10000.0)
 @given(ops=_MUTATIONS, seed=st.integers(0, 3), tracklets=st.booleans(), rate=st.sampled_from([0.5, 60.0, 1e4]))
 def test_label_sequence_with_the_body_check_on_mutated_takes(setup, ops, seed, tracklets, rate):
     model, layout, lab = setup

@@ -349,14 +349,15 @@ def frame_layout(
     from ``base``'s placement; labels absent or missing in that frame keep it); each other
     point visible in that frame (unlabelled ``*`` points, other protocols' markers) becomes a
     new marker ``{prefix}01``, ... in the order of the file's columns, except points that are no
-    marker of this body: farther than ``FAR_RADIUS`` from the frame's main cluster
-    (:func:`main_cluster`: reflections, other subjects) or within ``COINCIDENT_TOL`` of a labelled
-    marker or an earlier point (copies); ``progress`` is told how many were left out. Labels:
-    ``base``'s, then the new ones.
+    marker of this body: farther than ``FAR_RADIUS`` from the median of the labelled markers
+    (reflections, other subjects) or within ``COINCIDENT_TOL`` of a labelled marker or an earlier
+    point (copies); ``progress`` is told how many were left out. Labels: ``base``'s, then the new
+    ones.
 
     Raises:
         ValueError: ``frame`` out of range, or ``seq`` not in metres, with fewer than 6 of
-            ``base``'s labels in that frame, or with two labels on one point (within 1 mm).
+            ``base``'s labels in that frame, with two labels on one point (within 1 mm), or with a
+            label outside the labelled markers' main cluster (:func:`main_cluster`).
     """
     if not 0 <= frame < seq.num_frames:
         raise ValueError(f"frame: expected 0 <= frame < {seq.num_frames}, got {frame}")

@@ -181,6 +181,7 @@ def relabel(
     m = len(layout)
     check_frame_labels(labels, torch.isfinite(points).all(-1), m, "labels")
     say = progress or (lambda _: None)
+    solve = SolveConfig() if solve is None else solve
     labels = labels.long()
     result = None
     for k in range(cfg.passes):
@@ -204,19 +205,19 @@ def relabel(
     return labels, result
 
 
-def _solvable(observed: torch.Tensor, solve: SolveConfig | None) -> bool:
+def _solvable(observed: torch.Tensor, solve: SolveConfig) -> bool:
     """Whether some frame of the labelled markers (T, M, 3) has the markers a solve needs."""
-    return bool((SolveConfig() if solve is None else solve).solvable(torch.isfinite(observed).all(-1)).any())
+    return bool(solve.solvable(torch.isfinite(observed).all(-1)).any())
 
 
-def _unsolvable(observed: torch.Tensor, solve: SolveConfig | None, say: Callable[[str], None]) -> bool:
+def _unsolvable(observed: torch.Tensor, solve: SolveConfig, say: Callable[[str], None]) -> bool:
     """Whether no frame of the labelled markers (T, M, 3) can be solved; says so."""
     if _solvable(observed, solve):
         return False
     vis = torch.isfinite(observed).all(-1)
     most = int(vis.sum(1).max()) if vis.numel() else 0
-    need = (SolveConfig() if solve is None else solve).needed(vis.shape[1])
-    say(f"body check skipped: no frame has the {need} labelled markers a body solve needs (the most: {most})")
+    say(f"body check skipped: no frame has the {solve.needed(vis.shape[1])} labelled markers a body solve "
+        f"needs (the most: {most})")  # fmt: skip
     return True
 
 
@@ -233,7 +234,7 @@ def body_stride(fps: float, rate: float = BODY_RATE) -> int:
 def _strided(t: int, k: int) -> torch.Tensor:
     """Every k-th of t frames, and the last."""
     picked = torch.arange(0, t, k)
-    return picked if int(picked[-1]) == t - 1 else torch.cat([picked, torch.tensor([t - 1])])
+    return picked if t == 0 or int(picked[-1]) == t - 1 else torch.cat([picked, torch.tensor([t - 1])])
 
 
 def _solve_strided(
@@ -243,7 +244,7 @@ def _solve_strided(
     linearly interpolated between them."""
     t = len(points)
     result = solve_markers(points[picked], layout, config=solve, fps=fps / k)
-    if k == 1:
+    if k == 1 or t == 1:  # every frame solved (one frame: nothing to interpolate between)
         return result.markers, result
     x = torch.arange(t, dtype=torch.float64)
     hi = torch.searchsorted(picked.double(), x).clamp(1, len(picked) - 1)
@@ -299,6 +300,7 @@ def relabel_tracklets(
         raise ValueError(f"weight: expected a finite number >= 0, got {weight!r}")
     vis = torch.isfinite(points).all(-1)
     say = progress or (lambda _: None)
+    solve = SolveConfig() if solve is None else solve
     spans = column_spans(prob, vis, tracklets)
     labels = settle_tracklets(prob, vis, spans=spans)
     observed = labelled_markers(points.double(), labels, m)
