@@ -139,6 +139,21 @@ def test_plan_mirrors_folders_skips_other_files_and_splits_into_shards(tmp_path)
     assert [Path(t.input).name for t in tasks] == ["take1.bvh"]
 
 
+def test_a_broken_link_is_named_by_itself(tmp_path):
+    """A link to nowhere in an input folder: before, its task was named by the missing target
+    ("/nonexistent: /in/take.bvh: No such file or directory"); now by the link, saying so. A link
+    to a real take is one task with it (the take converts once)."""
+    src, out = tmp_path / "in", tmp_path / "out"
+    takes = _folder(src, 1)
+    (src / "gone.npz").symlink_to(tmp_path / "nowhere.npz")
+    (src / "again.npz").symlink_to(takes[0])
+    tasks, _ = plan([src], ["motion"], out)
+    by_name = {Path(t.input).name: t for t in tasks}
+    assert set(by_name) == {"gone.npz", takes[0].name}
+    assert by_name["gone.npz"].error == f"{src / 'gone.npz'}: a broken link (to {tmp_path / 'nowhere.npz'})"
+    assert by_name[takes[0].name].error is None
+
+
 # --------------------------------------------------------------------------- executors
 
 

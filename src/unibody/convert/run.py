@@ -100,6 +100,8 @@ def _candidates(inputs: Iterable[Path], out: Path) -> Iterator[tuple[Path, Path,
 
 def _classify(path: Path, explicit: bool, source: str | None) -> tuple[str | None, str | None, str | None]:
     """``(format, error, skip reason)`` of one candidate file."""
+    if path.is_symlink() and not path.exists():
+        return None, f"{path}: a broken link (to {os.readlink(path)})", None
     if source is not None and explicit:
         return source, None, None
     try:
@@ -144,7 +146,8 @@ def plan(
     to, out = tuple(to), Path(out)
     found: dict[str, tuple[Path, Path, bool]] = {}
     for path, rel, explicit in _candidates([Path(p) for p in inputs], out):
-        found.setdefault(os.path.realpath(path), (path, rel, explicit))
+        # one task per real file; a broken link is its own (named by itself, not by where it points)
+        found.setdefault(os.path.realpath(path) if path.exists() else os.path.abspath(path), (path, rel, explicit))
     tasks, skipped = [], []
     classified = {}
     out_real = os.path.realpath(out)
