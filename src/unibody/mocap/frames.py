@@ -61,8 +61,7 @@ def check_points(points: torch.Tensor, spec: str, m: int | None = None, name: st
         raise TypeError(f"{name}: expected float32 or float64, got {points.dtype}")
     if bool(torch.isinf(points).any()):
         raise ValueError(f"{name}: expected finite values or NaN for missing markers, got inf")
-    finite = points[torch.isfinite(points)]
-    if finite.numel() == 0:
+    if not bool(torch.isfinite(points).any()):
         raise ValueError(f"{name}: every marker is missing (all NaN)")
     check_marker_units(points.detach().reshape(-1, *points.shape[-2:]).cpu().numpy(), name)
     return points

@@ -367,9 +367,13 @@ def frame_layout(
     known = np.stack([pts[idx[x]] if x in idx else np.full(3, np.nan) for x in base.labels])
     if (seen := int(np.isfinite(known).all(-1).sum())) < 6:
         raise ValueError(f"seq: frame {frame} has {seen} of {base.name}'s labels; need 6 or more")
-    co = find_coincident(known[None]).original[0]
-    if (twice := np.flatnonzero(co != np.arange(len(co)))).size:
-        a, b = base.labels[co[twice[0]]], base.labels[twice[0]]
+    others = np.array([pts[i] for i, x in enumerate(seq.labels) if x not in base.labels]).reshape(-1, 3)
+    others = others[np.isfinite(others).all(-1)]
+    k = len(known)
+    original = find_coincident(np.concatenate([known, others])[None]).original[0]  # labelled points first
+    copy = original != np.arange(k + len(others))
+    if (twice := np.flatnonzero(copy[:k])).size:
+        a, b = base.labels[original[twice[0]]], base.labels[twice[0]]
         raise ValueError(f"seq: frame {frame} has {a} and {b} on one point (within 1 mm): a point labelled twice?")
     near = main_cluster(known[None])[0]
     if (off := np.flatnonzero(np.isfinite(known).all(-1) & ~near)).size:
@@ -377,11 +381,8 @@ def frame_layout(
             f"seq: frame {frame}'s {base.labels[off[0]]} lies farther than {FAR_RADIUS:g} m from the other "
             f"labelled markers ({off.size} such): mislabelled?"
         )
-    others = np.array([pts[i] for i, x in enumerate(seq.labels) if x not in base.labels]).reshape(-1, 3)
-    others = others[np.isfinite(others).all(-1)]
     far = np.linalg.norm(others - np.median(known[near], axis=0), axis=-1) > FAR_RADIUS
-    both = np.concatenate([known, others])[None]
-    copy = (find_coincident(both).original[0] != np.arange(both.shape[1]))[len(known) :]
+    copy = copy[k:]
     if progress is not None and (far | copy).any():
         progress(
             f"left out {int((far | copy).sum())} of frame {frame}'s {len(others)} other points: "
