@@ -65,7 +65,7 @@ from unibody.mocap.layout import MarkerLayout
 from unibody.mocap.metrics import labeling_scores
 from unibody.mocap.pipeline import label_sequence, load_labeler, render_solution, solve_sequence
 from unibody.mocap.relabel import relabel, relabel_tracklets
-from unibody.mocap.solve import lab_to_unibody
+from unibody.mocap.solve import SolveConfig, lab_to_unibody
 from unibody.mocap.tracklets import label_tracklets, settle_tracklets
 
 FILES = {
@@ -505,8 +505,10 @@ def speed_section(root: Path, models: dict[str, Labeler], seed: int, rounds: int
                     )
 
 
-def solve_section(root: Path, png: Path | None) -> None:
-    print("\n## Body solve on the files' labels (stage 1 + stage 2, CPU)")
+def solve_section(root: Path, png: Path | None, config: SolveConfig | None = None) -> None:
+    a = (config or SolveConfig()).acceleration_robust
+    prior = f"acceleration prior Cauchy past {a:g} m/s^2" if a > 0 else "acceleration prior squared"
+    print(f"\n## Body solve on the files' labels (stage 1 + stage 2, CPU; {prior})")
     print("| file | layout | frames | solved | residual mean / median (mm) | frames/s |\n|---|---|---|---|---|---|")
     for name, files in FILES.items():
         layout = MarkerLayout.load(name)
@@ -514,7 +516,7 @@ def solve_section(root: Path, png: Path | None) -> None:
             seq = read(root / rel)
             lay = layout if all(x in seq.labels for x in layout.labels) else MarkerLayout.load("pig35")
             t = time.perf_counter()
-            res = solve_sequence(seq, lay)
+            res = solve_sequence(seq, lay, config=config)
             dt = time.perf_counter() - t
             r = res.residual[torch.isfinite(res.residual)] * 1000
             solved = 100 * float(res.solved.float().mean())
@@ -541,6 +543,12 @@ def main() -> None:
     p.add_argument("--pig39", default="pig39", help="labeler weights (name or path)")
     p.add_argument("--retry", type=float, help="two-stage labelers: override the weights' retry confidence (0: off)")
     p.add_argument("--bf16", action="store_true", help="labelers' networks in bfloat16 (Labeler.set_autocast)")
+    p.add_argument(
+        "--acceleration-robust",
+        type=float,
+        metavar="M_S2",
+        help="solve section: SolveConfig.acceleration_robust (0: the squared prior of before 2026-11-29)",
+    )
     p.add_argument(
         "--speed-also",
         nargs="*",
@@ -588,7 +596,13 @@ def main() -> None:
             raise SystemExit(f"--speed-also: {err}") from None
         speed_section(args.evaldata, models, args.seed, also=also)
     if "solve" in args.sections:
-        solve_section(args.evaldata, args.png)
+        try:
+            cfg = (
+                None if args.acceleration_robust is None else SolveConfig(acceleration_robust=args.acceleration_robust)
+            )
+        except ValueError as err:
+            p.error(f"--{str(err).replace('_', '-')}")
+        solve_section(args.evaldata, args.png if cfg is None else None, cfg)
 
 
 if __name__ == "__main__":
