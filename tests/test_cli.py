@@ -148,6 +148,7 @@ def test_motion_reader_checks_fields(tmp_path):
         ("pose", np.full((3, 77, 3), np.inf, np.float32), "pose: expected finite values"),
         ("pose", np.zeros((3, 77, 3), np.int64), "pose: expected floating-point numbers"),
         ("transl", np.zeros((2, 3), np.float32), r"transl: expected shape \(3, 3\)"),
+        ("transl", np.full((3, 3), 2e5, np.float32), r"transl: expected the root within 100000 m .* 2e\+05 m at frame"),
         ("identity", np.full(10, np.nan, np.float32), "identity: expected finite values"),
         ("identity_backend", np.zeros(3), "identity_backend: expected a string"),
     ]:
@@ -160,6 +161,13 @@ def test_motion_reader_checks_fields(tmp_path):
         load_motion(tmp_path / "nokey.npz")
     with pytest.raises(ValueError, match="fps: expected a positive number"):
         save_motion(tmp_path / "x.npz", Motion(data["pose"], data["transl"], 0.0))
+    # float64 values past float32's range were written as inf (the file then refused on reading)
+    huge = data["pose"].astype(np.float64)
+    huge[1, 5, 2] = 1e300
+    expected = r"^pose: expected values within float32's range \(\+-3.4e\+38\), got 1 beyond it \(up to 1e\+300\)$"
+    with pytest.raises(ValueError, match=expected):
+        save_motion(tmp_path / "x.npz", Motion(huge, data["transl"], 30.0))
+    assert not (tmp_path / "x.npz").exists()
 
 
 # --------------------------------------------------------------------------- errors and exit codes

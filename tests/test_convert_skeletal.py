@@ -166,6 +166,12 @@ def test_units_and_bad_input():
     rot[[2, 4], 5, 0, 0] = np.nan
     with pytest.raises(ValueError, match=r"x.bvh: expected finite joint values, got NaN/inf in 2 frame\(s\): 2, 4$"):
         skeletal_to_motion(replace(sk, rotations=rot), ConvertOptions(), "", "x.bvh: ")
+    # a root 1e300 units away was cast to float32 and refused as "NaN/inf"; 1e30 gave a body at 1e28 m
+    for far, shown in ((1e30, r"1e\+28"), (1e300, r"1e\+298")):
+        moved = sk.translations.copy()
+        moved[3, 0, 1] = far
+        with pytest.raises(ValueError, match=rf"x.bvh: expected the root within 100000 m .* {shown} m at frame 3 "):
+            skeletal_to_motion(replace(sk, translations=moved), ConvertOptions(units="cm"), "", "x.bvh: ")
     few = SkeletalMotion(
         ("hip", "abdomen", "chest", "tail", "wing"),
         np.array([-1, 0, 1, 0, 2]),

@@ -41,13 +41,19 @@ __all__ = [
     "MOTION_FORMAT",
     "Motion",
     "MeshSequence",
+    "MAX_ROOT_DISTANCE",
     "check_fps",
+    "check_motion",
     "load_mesh_sequence",
     "load_motion",
     "save_motion",
 ]
 
 MOTION_FORMAT = "unibody.motion/1"
+MAX_ROOT_DISTANCE = 1e5
+"""Metres: the farthest a motion's root may be from the origin. Motion, glTF, USD and mesh files
+hold positions in float32, whose step is 7.8 mm there; a root farther away is a unit or export
+error, not a place (and past 1e38 m float32 holds nothing)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,7 +100,15 @@ def _floats(x: np.ndarray, shape: str, ok: bool, where: str) -> np.ndarray:
     bad = int(np.size(x) - np.isfinite(x).sum())
     if bad:
         raise ValueError(f"{where}: expected finite values, got {bad} NaN/inf entries")
-    return x.astype(np.float32, copy=False)
+    with np.errstate(over="ignore"):
+        y = x.astype(np.float32, copy=False)
+    big = int(np.size(y) - np.isfinite(y).sum())
+    if big:
+        raise ValueError(
+            f"{where}: expected values within float32's range (+-3.4e+38), got {big} beyond it "
+            f"(up to {np.abs(x).max():.3g})"
+        )
+    return y
 
 
 def _text(x: np.ndarray, where: str) -> str:
@@ -121,17 +135,33 @@ def _check_motion(pose: np.ndarray, transl: np.ndarray, identity: np.ndarray | N
     t = pose.shape[0]
     transl = np.asarray(transl)
     transl = _floats(transl, f"({t}, 3)", transl.shape == (t, 3), f"{where}transl")
+    if t and (far := float(np.abs(transl).max())) > MAX_ROOT_DISTANCE:
+        frame = int(np.abs(transl).max(axis=1).argmax())
+        raise ValueError(
+            f"{where}transl: expected the root within {MAX_ROOT_DISTANCE:g} m of the origin (positions in metres), "
+            f"got {far:.3g} m at frame {frame}"
+        )
     if identity is not None:
         identity = np.asarray(identity)
         identity = _floats(identity, "(K,)", identity.ndim == 1 and identity.size > 0, f"{where}identity")
     return pose, transl, identity
 
 
+def check_motion(motion: Motion, name: str = "motion") -> None:
+    """ValueError (one line, naming ``name.pose``, ``.transl``, ``.identity`` or ``.fps``) unless
+    ``motion`` holds what a motion file can: float arrays of the right shapes, finite and within
+    float32's range, the root within :data:`MAX_ROOT_DISTANCE` of the origin, a valid frame rate.
+    """
+    _check_motion(motion.pose, motion.transl, motion.identity, f"{name}.")
+    check_fps(motion.fps, f"{name}.fps")
+
+
 def save_motion(path: str | Path, motion: Motion) -> None:
     """Write a motion file atomically, exactly at ``path`` (see the module docstring for the fields).
 
     Raises:
-        ValueError: a field has the wrong shape, is not finite, or ``fps`` is not positive.
+        ValueError: a field has the wrong shape, is not finite or beyond float32, the root is
+            farther than :data:`MAX_ROOT_DISTANCE` from the origin, or ``fps`` is not positive.
     """
     pose, transl, identity = _check_motion(motion.pose, motion.transl, motion.identity, "")
     fields = {

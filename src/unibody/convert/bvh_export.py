@@ -37,7 +37,7 @@ import torch
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..io.bvh import write_bvh as _write_skeleton
 from ..io.skeletal import SkeletalMotion
-from ..motion import Motion, check_fps
+from ..motion import Motion, check_fps, check_motion
 from ..rig import JOINT_NAMES
 from ._body import body_for
 from ._types import ConvertOptions
@@ -80,6 +80,7 @@ def _check(motion: Motion) -> tuple[np.ndarray, np.ndarray, float]:
         if bad.size:
             shown = ", ".join(map(str, bad[:10])) + (", ..." if bad.size > 10 else "")
             raise ValueError(f"motion.{name}: expected finite values, got NaN/inf in frames {shown}")
+    check_motion(motion)  # float32's range, the root's distance, the identity, the rate
     return pose.astype(np.float64), transl.astype(np.float64), check_fps(motion.fps, "motion.fps")
 
 

@@ -30,7 +30,7 @@ from ..body import BodyLayer, PreparedIdentity
 from ..geometry.rotations import matrix_to_quat_xyzw
 from ..io.atomic import atomic_write
 from ..io.glb import SkinnedAnimation, write_skinned_glb
-from ..motion import Motion, check_fps
+from ..motion import Motion, check_fps, check_motion
 from ._body import body_for
 from ._types import ConvertOptions
 
@@ -64,7 +64,7 @@ def _check(motion: Motion, path: object, options: ConvertOptions, suffixes: tupl
             raise ValueError(
                 f"motion.{name}: expected finite values, got NaN/inf at frame(s) {np.flatnonzero(bad)[:5].tolist()}"
             )
-    check_fps(motion.fps, "motion.fps")
+    check_motion(motion)  # float32's range, the root's distance, the identity, the rate
     if isinstance(options.batch, bool) or not isinstance(options.batch, int) or options.batch < 1:
         raise ValueError(f"options.batch: expected a positive integer, got {options.batch!r}")
     if options.dtype not in _DTYPES:
