@@ -357,3 +357,118 @@ def test_bad_skinned_write(tmp_path):
     with pytest.raises(ValueError, match="^animation: expected a SkinnedAnimation, got tuple$"):
         write_skinned_glb(tmp_path / "a.glb", (np.zeros((3, 3)),))
     assert list(tmp_path.iterdir()) == []
+
+
+# ----------------------------------------------------------------------------- reading a scene (the viewer's recorder)
+
+
+def _glb(gltf: dict, blob: bytes) -> bytes:
+    """A GLB container of ``gltf`` and ``blob`` (glTF 2.0 §4.4), written here, not by unibody."""
+    js = json.dumps(gltf).encode()
+    js += b" " * (-len(js) % 4)
+    blob += b"\0" * (-len(blob) % 4)
+    body = struct.pack("<II", len(js), 0x4E4F534A) + js + struct.pack("<II", len(blob), 0x004E4942) + blob
+    return struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body
+
+
+def _edited(data: bytes, edit) -> bytes:
+    (_, js), (_, blob) = _chunks(data)
+    gltf = json.loads(js)
+    edit(gltf)
+    return _glb(gltf, blob)
+
+
+def _quat_matrix(q: np.ndarray) -> np.ndarray:
+    x, y, z, w = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def test_scene_reader_poses_the_skin_as_the_nodes_stand(tmp_path):
+    from unibody.io.glb_scene import read_glb_scene
+
+    anim = skinned()
+    write_skinned_glb(tmp_path / "a.glb", anim)
+    ((verts, faces),) = read_glb_scene((tmp_path / "a.glb").read_bytes())
+    np.testing.assert_array_equal(faces, anim.faces)
+    # Linear blend skinning at frame 0 (the nodes' own transforms), from the animation's arrays.
+    world = []
+    for j, p in enumerate(PARENTS):
+        local = np.eye(4)
+        local[:3, :3], local[:3, 3] = _quat_matrix(anim.rotations[0, j]), anim.translations[0, j]
+        world.append(local if p < 0 else world[p] @ local)
+    mats = np.stack(world) @ np.linalg.inv(anim.bind_matrices)
+    rest = np.concatenate([anim.vertices, np.ones((8, 1))], axis=1)
+    expected = np.einsum("vk,vkij,vj->vi", anim.joint_weights, mats[anim.joint_indices, :3], rest)
+    np.testing.assert_allclose(verts, expected, atol=1e-5)
+    assert np.abs(verts - anim.vertices).max() > 0.1  # the check can fail: the skin moved the cube
+
+
+def test_scene_reader_places_meshes_as_trimesh_does(tmp_path, scene):
+    from unibody.io.glb_scene import read_glb_scene
+
+    trimesh = pytest.importorskip("trimesh")
+    write_glb(tmp_path / "s.glb", scene)
+
+    def transforms(gltf):  # node 0 under node 1; TRS on one, a matrix on the other
+        gltf["nodes"][0] |= {"translation": [0.5, -1.0, 2.0], "rotation": [0.0, 0.6, 0.0, 0.8], "scale": [1, 2, 1]}
+        gltf["nodes"][1]["matrix"] = [0, 0, -1, 0, 0, 1, 0, 0, 1, 0, 0, 0, 3, 0, 0, 1]  # column-major
+        gltf["nodes"][1]["children"] = [0]
+        gltf["scenes"][0]["nodes"] = [1]
+
+    data = _edited((tmp_path / "s.glb").read_bytes(), transforms)
+    ours = read_glb_scene(data)
+    (tmp_path / "t.glb").write_bytes(data)
+    theirs = trimesh.load(tmp_path / "t.glb", process=False, force="scene").dump()
+    assert len(ours) == len(theirs) == 2
+    theirs = sorted(theirs, key=lambda g: len(g.vertices))
+    for (v, f), g in zip(sorted(ours, key=lambda p: len(p[0])), theirs, strict=True):
+        np.testing.assert_allclose(v, g.vertices, atol=1e-5)
+        np.testing.assert_array_equal(f, g.faces)
+    cube_verts = next(v for v, _ in ours if len(v) == len(scene[0].vertices))
+    assert np.abs(cube_verts - scene[0].vertices).max() > 1.0  # the check can fail: the nodes moved it
+
+
+def _cycle(g):
+    g["nodes"][0]["children"] = [1]
+    g["nodes"][1]["children"] = [0]
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda g: g.update(extensionsRequired=["KHR_draco_mesh_compression"]), "requires extension"),
+        (lambda g: g["buffers"][0].update(uri="data.bin"), "only the GLB-embedded buffer"),
+        (_cycle, "reached twice"),
+        (lambda g: g["meshes"][0]["primitives"][0]["attributes"].pop("POSITION"), r"malformed glTF \(KeyError"),
+        (lambda g: g["nodes"][1].update(mesh=7), r"malformed glTF \(IndexError"),
+        (lambda g: g["accessors"][0].update(count=10**9), "buffer is smaller"),
+        (lambda g: g["nodes"][0].update(rotation="up"), "could not convert string to float: 'up'"),
+    ],
+)
+def test_scene_reader_refuses_what_it_cannot_read(tmp_path, scene, edit, message):
+    from unibody.io.glb_scene import read_glb_scene
+
+    write_glb(tmp_path / "s.glb", scene)
+    with pytest.raises(ValueError, match=message):
+        read_glb_scene(_edited((tmp_path / "s.glb").read_bytes(), edit))
+
+
+def test_scene_reader_refuses_broken_containers(tmp_path, scene):
+    from unibody.io.glb_scene import read_glb_scene
+
+    write_glb(tmp_path / "s.glb", scene)
+    data = (tmp_path / "s.glb").read_bytes()
+    for bad, message in [
+        (b"glTF", "only 4 bytes"),
+        (b"PK\3\4" + data[4:], "magic"),
+        (data[: len(data) // 2], "truncated GLB file"),
+        (_glb({"asset": 1}, b"")[:20] + b"{not json" + b" " * 100, "truncated|not JSON"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            read_glb_scene(bad)

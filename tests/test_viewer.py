@@ -223,6 +223,56 @@ def test_view_bad_arguments(tmp_path, capsys):
     assert "--solve: layout: unknown layout 'pig99'" in capsys.readouterr().err
 
 
+def test_view_refuses_hostile_mesh_files_and_endless_recordings(tmp_path, capsys):
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    verts = np.random.default_rng(0).random((2, 4, 3)).astype(np.float32)
+    cases = [  # (fields, exit code, message); each used to be drawn, or hang, or fail unnamed
+        ({"faces": faces + 0.5}, 3, "faces: expected (F, 3) integer indices, F >= 1, got (2, 3) float64"),
+        ({"faces": np.zeros((0, 3), np.int64)}, 3, "faces: expected (F, 3) integer indices, F >= 1, got (0, 3)"),
+        ({"vertices": verts + 1e30}, 3, "vertices: expected positions within 100000 m of the origin"),
+        ({"fps": np.asarray(1e-5)}, 2, "--record: m.npz lasts 1e+05 s (1e-05 fps) makes 3000001 images at --fps 30"),
+    ]
+    for fields, code, message in cases:
+        path = tmp_path / "m.npz"
+        np.savez(path, **({"vertices": verts, "faces": faces, "topology": np.asarray("custom")} | fields))
+        assert main(["view", str(path), "--record", str(tmp_path / "x.png")]) == code, fields
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and message in err, err
+        assert not list(tmp_path.glob("x*.png"))
+
+
+def test_view_draws_a_glb_posed_as_it_stands(tmp_path, capsys):
+    from unibody.cli.view_sources import load_item
+    from unibody.convert import ConvertOptions
+    from unibody.convert._body import body_for
+    from unibody.convert.export import write_glb
+    from unibody.motion import Motion
+
+    rng = np.random.default_rng(5)
+    pose = (rng.normal(size=(2, 77, 3)) * 0.3).astype(np.float32)
+    motion = Motion(pose, np.array([[0, 1, 0], [1, 1, 0]], np.float32))
+    write_glb(motion, tmp_path / "take.glb", ConvertOptions())
+    item = load_item(tmp_path / "take.glb", {})
+    ((verts, faces),) = item.still
+    layer, prepared = body_for(motion)
+    with torch.no_grad():
+        posed = layer.pose(prepared, torch.as_tensor(motion.pose), transl=torch.as_tensor(motion.transl)).vertices
+    assert np.abs(verts - posed[0].numpy()).max() < 5e-4  # frame 0, as the file's nodes stand (0.5 mm)
+    np.testing.assert_array_equal(faces, layer.faces.numpy())
+    assert item.glb == (tmp_path / "take.glb").read_bytes()  # the browser gets the file as it is
+    # `--record` drew nothing of a GLB and failed: "meshes: expected at least one MeshSpec"
+    assert main(["view", str(tmp_path / "take.glb"), "--record", str(tmp_path / "x.png"), "--size", "96x64"]) == 0
+    from PIL import Image
+
+    assert _background_share(np.asarray(Image.open(tmp_path / "x.png"))) < 0.97
+    broken = tmp_path / "broken.glb"
+    broken.write_bytes((tmp_path / "take.glb").read_bytes()[:5000])
+    capsys.readouterr()
+    assert main(["view", str(broken), "--record", str(tmp_path / "y.png")]) == 3
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "broken.glb: not a glTF file the viewer reads (truncated GLB file" in err
+
+
 # --------------------------------------------------------------------------- recording
 
 

@@ -41,7 +41,7 @@ __all__ = [
     "MOTION_FORMAT",
     "Motion",
     "MeshSequence",
-    "MAX_ROOT_DISTANCE",
+    "MAX_DISTANCE",
     "check_fps",
     "check_motion",
     "load_mesh_sequence",
@@ -50,10 +50,10 @@ __all__ = [
 ]
 
 MOTION_FORMAT = "unibody.motion/1"
-MAX_ROOT_DISTANCE = 1e5
-"""Metres: the farthest a motion's root may be from the origin. Motion, glTF, USD and mesh files
-hold positions in float32, whose step is 7.8 mm there; a root farther away is a unit or export
-error, not a place (and past 1e38 m float32 holds nothing)."""
+MAX_DISTANCE = 1e5
+"""Metres: the farthest a motion's root or a stored mesh's vertex may be from the origin (the
+inverter's ``MAX_COORDINATE``). Motion, glTF, USD and mesh files hold positions in float32, whose
+step is 7.8 mm there; anything farther is a unit or export error, not a place."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -135,10 +135,10 @@ def _check_motion(pose: np.ndarray, transl: np.ndarray, identity: np.ndarray | N
     t = pose.shape[0]
     transl = np.asarray(transl)
     transl = _floats(transl, f"({t}, 3)", transl.shape == (t, 3), f"{where}transl")
-    if t and (far := float(np.abs(transl).max())) > MAX_ROOT_DISTANCE:
+    if t and (far := float(np.abs(transl).max())) > MAX_DISTANCE:
         frame = int(np.abs(transl).max(axis=1).argmax())
         raise ValueError(
-            f"{where}transl: expected the root within {MAX_ROOT_DISTANCE:g} m of the origin (positions in metres), "
+            f"{where}transl: expected the root within {MAX_DISTANCE:g} m of the origin (positions in metres), "
             f"got {far:.3g} m at frame {frame}"
         )
     if identity is not None:
@@ -150,7 +150,7 @@ def _check_motion(pose: np.ndarray, transl: np.ndarray, identity: np.ndarray | N
 def check_motion(motion: Motion, name: str = "motion") -> None:
     """ValueError (one line, naming ``name.pose``, ``.transl``, ``.identity`` or ``.fps``) unless
     ``motion`` holds what a motion file can: float arrays of the right shapes, finite and within
-    float32's range, the root within :data:`MAX_ROOT_DISTANCE` of the origin, a valid frame rate.
+    float32's range, the root within :data:`MAX_DISTANCE` of the origin, a valid frame rate.
     """
     _check_motion(motion.pose, motion.transl, motion.identity, f"{name}.")
     check_fps(motion.fps, f"{name}.fps")
@@ -161,7 +161,7 @@ def save_motion(path: str | Path, motion: Motion) -> None:
 
     Raises:
         ValueError: a field has the wrong shape, is not finite or beyond float32, the root is
-            farther than :data:`MAX_ROOT_DISTANCE` from the origin, or ``fps`` is not positive.
+            farther than :data:`MAX_DISTANCE` from the origin, or ``fps`` is not positive.
     """
     pose, transl, identity = _check_motion(motion.pose, motion.transl, motion.identity, "")
     fields = {
@@ -223,6 +223,12 @@ def load_mesh_sequence(path: str | Path) -> MeshSequence:
             )
         v = _field(data, "vertices", path)
         vertices = _floats(v, "(T, N, 3)", v.ndim == 3 and v.shape[2] == 3, f"{path}: vertices")
+        if vertices.size and (far := float(np.abs(vertices).max())) > MAX_DISTANCE:
+            t, n = np.unravel_index(int(np.abs(vertices).max(axis=2).argmax()), vertices.shape[:2])
+            raise ValueError(
+                f"{path}: vertices: expected positions within {MAX_DISTANCE:g} m of the origin (metres), "
+                f"got {far:.3g} m (mesh {t}, vertex {n})"
+            )
         identity = _field(data, "identity", path) if "identity" in data.files else None
         if identity is not None:
             ok = identity.ndim == 1 and identity.size > 0

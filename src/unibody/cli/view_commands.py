@@ -121,6 +121,15 @@ def run_view(args: argparse.Namespace, force: bool = False) -> None:
         viewer.stop()
 
 
+MAX_RECORD_IMAGES = 100_000
+"""The most images ``--record`` makes: 55 minutes of video at 30 fps."""
+
+
+def _longest(items: list) -> str:
+    item = max(items, key=lambda x: x.duration)
+    return f"{item.name} lasts {item.duration:.3g} s ({item.fps:g} fps)"
+
+
 def _record(args: argparse.Namespace, spacing: float, force: bool) -> None:
     from ..io.atomic import check_output
     from ..viz.viewer.record import frame_count, png_paths, record, render_frames
@@ -138,6 +147,12 @@ def _record(args: argparse.Namespace, spacing: float, force: bool) -> None:
             raise UsageError("--record: .mp4 needs imageio-ffmpeg: pip install 'unibody[viewer]' (or write .png)")
     items = _items(args)
     count = frame_count(items, fps=fps, turntable=turntable)
+    if count > MAX_RECORD_IMAGES:  # a file at 1e-5 fps lasts a day a frame: refuse, do not render for days
+        what = f"--turntable {turntable:g}" if turntable is not None else _longest(items)
+        raise UsageError(
+            f"--record: {what} makes {count} images at --fps {fps:g}; expected at most {MAX_RECORD_IMAGES} "
+            "(lower --fps or shorten it)"
+        )
     if out.suffix.lower() == ".png" and count > 1:
         for path in png_paths(out, count):
             check_output(path, inputs=args.files, suffixes=[".png"], force=force, name="--record")

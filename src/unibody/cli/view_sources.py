@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..motion import MAX_DISTANCE
 from ..viz.viewer.tracks import GHOST, LABELLED, UNLABELLED, IdentityControls, MarkerTrack, SceneItem
 from ._common import InputError, UsageError, _about, _read
 
@@ -289,15 +290,47 @@ def _mesh_item(path: Path, layers: dict) -> SceneItem:
     return SceneItem(path.name, bodies=(MeshSequenceBody(path.name, seq.vertices, faces, seq.fps or 30.0),))
 
 
+def _glb_item(path: Path) -> SceneItem:
+    """A GLB: its bytes for the browser, and its scene's triangle meshes for the recorder.
+
+    The meshes stand as a glTF viewer shows the file before it plays: placed by the nodes' own
+    transforms, skins applied (:func:`unibody.io.glb_scene.read_glb_scene`). A file that cannot
+    be read this way, or holds no triangle, is refused here, so a broken file never reaches the
+    browser as an empty scene.
+    """
+    from ..io.glb_scene import read_glb_scene
+
+    data = path.read_bytes()
+    if data[:4] != b"glTF":
+        raise InputError(f"{path}: not a binary glTF file (starts with {data[:4]!r}, expected b'glTF')")
+    try:
+        still = tuple((v, f) for v, f in read_glb_scene(data))
+    except ValueError as exc:
+        raise InputError(f"{path}: not a glTF file the viewer reads ({str(exc)[:200]})") from None
+    if not still:
+        raise InputError(f"{path}: no triangle mesh in the file's scene")
+    far = max(float(np.abs(v).max()) if np.isfinite(v).all() else np.inf for v, _ in still)
+    if far > MAX_DISTANCE:
+        raise InputError(
+            f"{path}: vertices: expected finite positions within {MAX_DISTANCE:g} m of the origin (metres), "
+            f"got {far:.3g}"
+        )
+    return SceneItem(path.name, glb=data, still=still)
+
+
 class MeshSequenceBody:
     """A :class:`~unibody.viz.viewer.tracks.BodySource` of stored meshes (no joints, no editing)."""
 
     def __init__(self, name: str, vertices: np.ndarray, faces: np.ndarray, fps: float) -> None:
         self.name, self.fps = name, float(fps)
         self._vertices = np.asarray(vertices, np.float32)
-        self.faces = np.asarray(faces, np.uint32)
-        if self.faces.ndim != 2 or self.faces.shape[1] != 3 or self.faces.max() >= self._vertices.shape[1]:
-            raise InputError(f"{name}: faces: expected (F, 3) indices below {self._vertices.shape[1]}")
+        faces = np.asarray(faces)
+        n = self._vertices.shape[1]
+        if faces.ndim != 2 or faces.shape[1] != 3 or not len(faces) or faces.dtype.kind not in "iu":
+            raise InputError(f"{name}: faces: expected (F, 3) integer indices, F >= 1, got {faces.shape} {faces.dtype}")
+        if faces.min() < 0 or faces.max() >= n:
+            raise InputError(f"{name}: faces: expected indices in 0..{n - 1}, got {faces.min()}..{faces.max()}")
+        self.faces = faces.astype(np.uint32)
         self.num_frames = self._vertices.shape[0]
         self.joint_names, self.parents, self.identity = ("Root",), (-1,), None
 
@@ -327,10 +360,7 @@ def load_item(path: Path, layers: dict, *, solve: str | None = None, up: str = "
     if suffix == ".c3d":
         return marker_item(path, layers, solve, up)
     if suffix == ".glb":
-        data = path.read_bytes()
-        if data[:4] != b"glTF":
-            raise InputError(f"{path}: not a binary glTF file (starts with {data[:4]!r}, expected b'glTF')")
-        return SceneItem(path.name, glb=data)
+        return _glb_item(path)
     fmt = _read(path, detect) if suffix != ".npz" or not _is_markers(path) else "markers"
     if fmt == "markers":
         return marker_item(path, layers, solve, up)

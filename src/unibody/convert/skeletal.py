@@ -32,7 +32,7 @@ from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..io.asfamc import read_asf_amc
 from ..io.bvh import read_bvh as read_bvh_file
 from ..io.skeletal import SkeletalMotion
-from ..motion import MAX_ROOT_DISTANCE, Motion
+from ..motion import MAX_DISTANCE, Motion
 from ..rig import JOINT_NAMES
 from ._body import _layer as _body_layer
 from ._types import Converted, ConvertOptions
@@ -290,15 +290,15 @@ def skeletal_to_motion(
     Raises:
         ValueError: NaN frames (their indices), fewer than :data:`MIN_MAPPED` mapped joints (the
             unmapped ones listed), units that give an implausible height, or a root farther than
-            :data:`~unibody.motion.MAX_ROOT_DISTANCE` from the origin.
+            :data:`~unibody.motion.MAX_DISTANCE` from the origin.
     """
     start = time.perf_counter()
     _check_frames(sk, where)
     scale = metres_per_unit(sk, options.units, where)
     root = np.abs(sk.translations[:, np.asarray(sk.parents) < 0]).max(axis=(1, 2)) * scale
-    if root.max() > MAX_ROOT_DISTANCE:
+    if root.max() > MAX_DISTANCE:
         raise ValueError(
-            f"{where}expected the root within {MAX_ROOT_DISTANCE:g} m of the origin, got {root.max():.3g} m "
+            f"{where}expected the root within {MAX_DISTANCE:g} m of the origin, got {root.max():.3g} m "
             f"at frame {int(root.argmax())} ({scale:g} m per unit)"
         )
     dtype = torch.float64 if options.dtype == "float64" else torch.float32

@@ -39,12 +39,13 @@ from ..geometry.procrustes import polar_svd
 from ..geometry.rotations import matrix_to_axis_angle, matrix_to_rot6d, rot6d_to_matrix
 from ..geometry.skinning import lbs_sparse, skin_layout
 from ..geometry.sparse import crow_indices, csr
+from ..motion import MAX_DISTANCE
 from ..regions import REGIONS, dominant_joints, joint_regions
 from ._gauss_newton import gauss_newton, gauss_newton_data
 
 __all__ = ["InversionConfig", "InversionResult", "PoseInverter", "PRESETS", "MAX_COORDINATE", "SIZE_BAND", "EDGE_BAND"]
 
-MAX_COORDINATE = 1.0e5  # m: a coordinate beyond this is refused (its square stays finite in float32)
+MAX_COORDINATE = MAX_DISTANCE  # m: a coordinate beyond 1e5 is refused (its square stays finite in float32)
 SIZE_BAND = (0.2, 5.0)  # accepted size ratio to the identity's rest mesh (random poses, 1 rad std: 0.31-1.44)
 EDGE_BAND = (0.5, 2.0)  # accepted median edge-length ratio to the rest mesh (the same poses: 0.97-1.22)
 _ABS_SIZE = (0.02, 3.0)  # m, median distance from the centre, without an identity (rest: baby 0.14, large adult 0.70)

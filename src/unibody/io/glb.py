@@ -489,32 +489,43 @@ def write_skinned_glb(path: str | os.PathLike[str], animation: SkinnedAnimation)
 # ----------------------------------------------------------------------------- reading
 
 
-def _read_glb(path: str | os.PathLike[str]) -> tuple[dict, bytes]:
-    with open(path, "rb") as fh:
-        data = fh.read()
+def _parse_glb(data: bytes) -> tuple[dict, bytes]:
+    """A GLB's JSON (a dict) and BIN chunk, or ValueError saying what is wrong with the container."""
     if len(data) < 12:
-        raise ValueError(f"path: not a GLB file (only {len(data)} bytes)")
+        raise ValueError(f"not a GLB file (only {len(data)} bytes)")
     magic, version, length = struct.unpack_from("<III", data, 0)
     if magic != _GLB_MAGIC:
-        raise ValueError(f"path: not a GLB file (magic 0x{magic:08x})")
+        raise ValueError(f"not a GLB file (magic 0x{magic:08x})")
     if version != _GLB_VERSION:
-        raise ValueError(f"path: unsupported glTF container version {version}")
+        raise ValueError(f"unsupported glTF container version {version}")
     if length > len(data):
-        raise ValueError(f"path: truncated GLB file ({len(data)} of {length} bytes)")
-    gltf: dict | None = None
+        raise ValueError(f"truncated GLB file ({len(data)} of {length} bytes)")
+    gltf: object = None
     binary = b""
     pos = 12
     while pos + 8 <= length:
         chunk_len, chunk_type = struct.unpack_from("<II", data, pos)
         body = data[pos + 8 : pos + 8 + chunk_len]
         if chunk_type == _CHUNK_JSON and gltf is None:
-            gltf = json.loads(body.decode("utf-8"))
+            try:
+                gltf = json.loads(body.decode("utf-8"))
+            except (UnicodeDecodeError, ValueError) as exc:
+                raise ValueError(f"the JSON chunk is not JSON ({exc})") from None
         elif chunk_type == _CHUNK_BIN and not binary:
             binary = body
         pos += 8 + chunk_len
-    if gltf is None:
-        raise ValueError("path: GLB file has no JSON chunk")
+    if not isinstance(gltf, dict):
+        raise ValueError("GLB file has no JSON chunk holding an object")
     return gltf, binary
+
+
+def _read_glb(path: str | os.PathLike[str]) -> tuple[dict, bytes]:
+    with open(path, "rb") as fh:
+        data = fh.read()
+    try:
+        return _parse_glb(data)
+    except ValueError as exc:
+        raise ValueError(f"path: {exc}") from None
 
 
 def _accessor(gltf: dict, binary: bytes, index: int) -> np.ndarray:

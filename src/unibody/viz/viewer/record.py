@@ -36,6 +36,10 @@ def _scene(items: Sequence[SceneItem], t: float, spacing: float, overlay: bool, 
             rgb = tuple(c / 255 for c in BODY_COLORS[colour % len(BODY_COLORS)])
             meshes.append(MeshSpec(verts[0] + shift, np.asarray(body.faces, np.int64), rgb, body.name))
             colour += 1
+        for k, (verts, faces) in enumerate(item.still):
+            rgb = tuple(c / 255 for c in BODY_COLORS[colour % len(BODY_COLORS)])
+            meshes.append(MeshSpec(verts + shift, faces, rgb, f"{item.name}:{k}"))
+            colour += 1
         for track in item.markers:
             k = local_frame(int(round(t * track.fps)), track.fps, track.fps, track.num_frames)
             pts = track.points[k]

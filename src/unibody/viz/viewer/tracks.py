@@ -169,12 +169,18 @@ class MarkerTrack:
 
 @dataclass(frozen=True)
 class SceneItem:
-    """One input file: its bodies, marker tracks and static GLB scene, drawn together."""
+    """One input file: its bodies, marker tracks and static GLB scene, drawn together.
+
+    A GLB is kept twice: ``glb``, the file's bytes, which the browser draws as they are, and
+    ``still``, its triangle meshes ``(vertices (V, 3), faces (F, 3))`` in world coordinates at
+    rest, which the recorder draws.
+    """
 
     name: str
     bodies: tuple[BodySource, ...] = ()
     markers: tuple[MarkerTrack, ...] = ()
     glb: bytes | None = field(default=None, repr=False)
+    still: tuple[tuple[np.ndarray, np.ndarray], ...] = field(default=(), repr=False)
 
     @property
     def duration(self) -> float:
