@@ -12,6 +12,7 @@ import torch
 
 from unibody import JOINT_NAMES
 from unibody.convert import ConvertOptions
+from unibody.convert.formats import reader
 from unibody.convert.soma import read_soma, write_soma
 from unibody.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from unibody.motion import Motion
@@ -197,10 +198,15 @@ def test_soma_reader_errors_name_the_file_and_field(tmp_path, orient, parents):
         ),
         ({"fps": np.asarray(-1.0)}, "fps: expected a positive number"),
         ({"joint_orient": None}, "missing field 'joint_orient'"),
+        # found by tests/fuzz/test_fuzz_soma.py: a raw numpy error, then motions read from garbage
+        ({"poses": good["poses"][:0], "transl": good["transl"][:0]}, r"poses: expected at least one frame"),
+        ({"joint_orient": good["joint_orient"] * 100}, r"joint_orient: joint 0 is not a rotation matrix"),
+        ({"transl": good["transl"] + 1e30}, r"transl: expected the root within 100000 m"),
+        ({"identity_coeffs": good["identity_coeffs"].astype(np.float64) * 1e300}, r"identity: expected values within"),
     ]
     for change, message in cases:
         fields = {**good, **change}
         fields = {k: v for k, v in fields.items() if v is not None}
         path = _save(tmp_path / "bad.npz", fields)
         with pytest.raises(ValueError, match=f"bad.npz: {message}"):
-            read_soma(path, OPTS)
+            reader("soma")(path, OPTS)  # as unibody convert and unibody view read it

@@ -147,13 +147,14 @@ def _check_motion(pose: np.ndarray, transl: np.ndarray, identity: np.ndarray | N
     return pose, transl, identity
 
 
-def check_motion(motion: Motion, name: str = "motion") -> None:
-    """ValueError (one line, naming ``name.pose``, ``.transl``, ``.identity`` or ``.fps``) unless
+def check_motion(motion: Motion, where: str = "motion.") -> None:
+    """ValueError (one line: ``where`` then ``pose``, ``transl``, ``identity`` or ``fps``) unless
     ``motion`` holds what a motion file can: float arrays of the right shapes, finite and within
     float32's range, the root within :data:`MAX_DISTANCE` of the origin, a valid frame rate.
+    ``where`` is ``"motion."`` for an argument, ``"take.bvh: "`` for what a file gave.
     """
-    _check_motion(motion.pose, motion.transl, motion.identity, f"{name}.")
-    check_fps(motion.fps, f"{name}.fps")
+    _check_motion(motion.pose, motion.transl, motion.identity, where)
+    check_fps(motion.fps, f"{where}fps")
 
 
 def save_motion(path: str | Path, motion: Motion) -> None:

@@ -8,6 +8,7 @@ reads the file's content, never its suffix: the keys of an ``.npz``, the first w
 
 from __future__ import annotations
 
+import functools
 import importlib
 import re
 import zipfile
@@ -15,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..motion import MOTION_FORMAT, load_motion, save_motion
+from ..motion import MOTION_FORMAT, check_motion, load_motion, save_motion
 from ._types import Converted, ConvertOptions
 
 __all__ = [
@@ -92,7 +93,10 @@ def _load(target: str, fmt: str) -> Callable:
 
 
 def reader(fmt: str) -> Callable[[Path, ConvertOptions], Converted]:
-    """The reader of ``fmt``: ``(path, options) -> Converted``.
+    """The reader of ``fmt``: ``(path, options) -> Converted``, its motion checked.
+
+    The motion has at least one frame and passes :func:`unibody.motion.check_motion` (finite,
+    within float32's range and :data:`~unibody.motion.MAX_DISTANCE`), or a ValueError names the file.
 
     Raises:
         ValueError: ``fmt`` is not read, or its module cannot be imported ("format X is not available").
@@ -100,7 +104,17 @@ def reader(fmt: str) -> Callable[[Path, ConvertOptions], Converted]:
     spec = FORMATS.get(fmt)
     if spec is None or spec.read is None:
         raise ValueError(f"format: expected one of {', '.join(READERS)} to read, got {fmt!r}")
-    return _load(spec.read, fmt)
+    read = _load(spec.read, fmt)
+
+    @functools.wraps(read)
+    def checked(path: Path, options: ConvertOptions) -> Converted:
+        converted = read(path, options)
+        check_motion(converted.motion, f"{path}: ")  # one rule for what any reader gives
+        if len(converted.motion.pose) == 0:
+            raise ValueError(f"{path}: expected at least one frame, got 0")
+        return converted
+
+    return checked
 
 
 def writer(fmt: str) -> Callable:

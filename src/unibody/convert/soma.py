@@ -64,7 +64,7 @@ class _File:
             raise ValueError(f"{self.path}: {key}: expected shape {shape}, got {x.shape}")
         if x.dtype.kind != "f":
             raise ValueError(f"{self.path}: {key}: expected floating-point numbers, got dtype {x.dtype}")
-        bad = np.argwhere(~np.isfinite(x.reshape(len(x), -1)).all(1)) if x.ndim else []
+        bad = np.argwhere(~np.isfinite(x.reshape(len(x), -1)).all(1)) if x.ndim and x.size else []
         if len(bad):
             raise ValueError(
                 f"{self.path}: {key}: non-finite values in {len(bad)} frame(s), first at frame {bad[0][0]}"
@@ -96,14 +96,22 @@ def _rotations(f: _File, n_names: int) -> tuple[np.ndarray, str]:
     if repr_ != "matrix":
         raise ValueError(f"{f.path}: rotation_repr: expected 'rotvec' or 'matrix', got {repr_!r}")
     R = f.floats("poses", f"(N, {n_names}, 3, 3)", lambda x: x.ndim == 4 and x.shape[1:] == (n_names, 3, 3))
-    err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-1, -2)) if R.size else np.zeros((0,))
-    bad = np.argwhere((err > 1e-3) | (np.linalg.det(R) < 0)) if R.size else []
-    if len(bad):
-        t, j = bad[0]
-        raise ValueError(
-            f"{f.path}: poses: frame {t}, joint {j} is not a rotation matrix (|RᵀR - I| = {err[t, j]:.3g})"
-        )
+    _check_rotations(R, f"{f.path}: poses: frame {{}}, joint {{}}")
     return R, repr_
+
+
+def _check_rotations(R: np.ndarray, where: str) -> None:
+    """ValueError unless every (..., 3, 3) matrix of ``R`` is a rotation; ``where`` formats its index."""
+    if not R.size:
+        return
+    with np.errstate(all="ignore"):
+        err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-1, -2))
+        bad = np.argwhere(~(err <= 1e-3) | ~(np.linalg.det(R) > 0))
+    if len(bad):
+        at = tuple(bad[0])
+        raise ValueError(
+            f"{where.format(*at)} is not a rotation matrix (|RᵀR - I| = {err[at]:.3g}, det {np.linalg.det(R)[at]:.3g})"
+        )
 
 
 def _to_canonical(R: torch.Tensor, names: list[str], orient: torch.Tensor | None, path: Path) -> torch.Tensor:
@@ -149,7 +157,7 @@ def _identity(f: _File, model: str, warnings: list[str]) -> tuple[np.ndarray | N
         return None, None
     if not np.allclose(coeffs, coeffs[:1]):
         warnings.append(f"{f.path.name}: identity_coeffs vary over the frames; kept frame 0's")
-    return coeffs[0].astype(np.float32), model.lower()
+    return coeffs[0], model.lower()  # float64: a value past float32 is refused by name, not cast to inf
 
 
 def read_soma(path: Path, options: ConvertOptions) -> Converted:
@@ -179,6 +187,8 @@ def read_soma(path: Path, options: ConvertOptions) -> Converted:
             warnings.append(f"{path.name}: joints not in the SOMA rig are ignored: {', '.join(extra[:8])}")
         poses, repr_ = _rotations(f, len(names))
         n = len(poses)
+        if n == 0:
+            raise ValueError(f"{path}: poses: expected at least one frame, got shape {poses.shape}")
         transl = f.floats("transl", f"({n}, 3)", lambda x: x.shape == (n, 3))
         unit = f.text("unit", "meters")
         if unit.lower() not in UNITS:
@@ -188,6 +198,7 @@ def read_soma(path: Path, options: ConvertOptions) -> Converted:
         if not absolute:
             J = len(names)
             orient = f.floats("joint_orient", f"({J}, 3, 3)", lambda x: x.shape == (J, 3, 3))
+            _check_rotations(orient, f"{path}: joint_orient: joint {{}}")
         fps_key = next((k for k in ("fps", "mocap_frame_rate", "mocap_framerate") if f.has(k)), None)
         if fps_key is None:
             fps = 30.0
