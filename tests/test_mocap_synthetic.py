@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import pytest
@@ -24,6 +25,42 @@ def test_shipped_layouts():
         shared = [x for x in lay.labels if x in sup.labels]
         assert torch.equal(sup.subset(shared).vertices, lay.subset(shared).vertices)
     assert set(MarkerLayout.load("pig35").labels) < set(MarkerLayout.load("pig39").labels)
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda d: "{oops", r"x.json: not a layout JSON file \(Expecting property name .* at line 1 column 2\)"),
+        (lambda d: [1, 2], r"x.json: expected a layout \(format 'unibody.marker_layout/1'\), got 'a JSON list'"),
+        (lambda d: d.pop("markers") and d, r"x.json: markers: expected an object of one or more markers, got None"),
+        (lambda d: d.pop("name") and d, r"x.json: name: expected a non-empty string, got None"),
+        (lambda d: d | {"topology": "smplx"}, r"x.json: topology: expected 'canonical', got 'smplx'"),
+        (lambda d: d["markers"]["LFHD"].update(vertex=10**9) or d, r"markers.LFHD.vertex: .* 0..18055, got 1000000000"),
+        (lambda d: d["markers"]["LFHD"].update(vertex=-5) or d, r"markers.LFHD.vertex: .*, got -5"),
+        (lambda d: d["markers"]["LFHD"].update(vertex=1.7) or d, r"markers.LFHD.vertex: .*, got 1.7"),
+        (
+            lambda d: d["markers"]["LFHD"].update(distance=1e30) or d,
+            r"LFHD.distance: .* \+-0.2, got 1e\+30",
+        ),
+        (lambda d: d["markers"]["LFHD"].update(distance=None) or d, r"markers.LFHD.distance: .*, got None"),
+        (
+            lambda d: d["markers"].update(LFHD=5) or d,
+            r"markers.LFHD: expected an object with vertex .*, got 5",
+        ),
+        (lambda d: d["markers"].update({"*1": d["markers"]["LFHD"]}) or d, r"x.json: labels: .* got '\*1'"),
+    ],
+)
+def test_layout_files_are_checked_field_by_field(tmp_path, edit, message):
+    # were: internal errors (KeyError, IndexError, a failed SVD), messages without the file, or
+    # layouts used as they were (vertex -5 is vertex 18051; a marker 1e30 m off the skin)
+    data = MarkerLayout.load("cmu41").to_json()
+    changed = edit(data)
+    (tmp_path / "x.json").write_text(changed if isinstance(changed, str) else json.dumps(changed))
+    with pytest.raises(ValueError, match=message):
+        MarkerLayout.load(tmp_path / "x.json")
+    (tmp_path / "x.json").write_bytes(b"\xff\xfe\x00")
+    with pytest.raises(ValueError, match=r"x.json: not a layout JSON file \(not UTF-8 text\)"):
+        MarkerLayout.load(tmp_path / "x.json")
 
 
 def test_layout_json_round_trip(tmp_path):

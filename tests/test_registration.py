@@ -293,7 +293,7 @@ def _fake_registration(num_source: int, seed: int = 0):
     from unibody.registration._normalize import Normalization
 
     rng = np.random.default_rng(seed)
-    n = _cache._CANONICAL_VERTICES
+    n = _cache.CANONICAL_VERTICES
     w = rng.random((n, 4))
     return SimpleNamespace(
         correspondence=SimpleNamespace(

@@ -15,7 +15,10 @@ from torch import nn
 from ._checks import check_finite, check_like, check_shape
 from .geometry.tetra import apply_correspondence
 
-__all__ = ["TopologyTransfer"]
+__all__ = ["CANONICAL_VERTICES", "TopologyTransfer"]
+
+CANONICAL_VERTICES = 18056
+"""Vertices of the canonical mesh (the SOMA topology): every canonical vertex id is below it."""
 
 
 class TopologyTransfer(nn.Module):

@@ -110,6 +110,10 @@ def run_mocap_layout(src: Path, out: Path, base: str, frame: int, up: str, prefi
     from ..mocap.layout import MarkerLayout
     from ..mocap.pipeline import frame_layout
 
+    if prefix.startswith("*"):
+        raise UsageError(
+            f"--prefix: expected a name prefix not starting with '*' (the mark of unlabelled points), got {prefix!r}"
+        )
     out = check_output(out, inputs=[src], suffixes=[".json"], force=force)
     seq = _read(src, read_markers)
     if not 0 <= frame < seq.num_frames:

@@ -34,13 +34,12 @@ from ..io.npz import read_npz
 from ..io.obj import read_obj
 from ..motion import Motion, check_fps
 from ..registration import topology_transfer
-from ..topology import TopologyTransfer
+from ..topology import CANONICAL_VERTICES, TopologyTransfer
 from ._types import Converted, ConvertOptions
 from .amass import _TRANSFER_CHUNK, _member, _string, inverter, pca_identity, solve_meshes
 
 __all__ = ["read_meshes", "template_transfer"]
 
-CANONICAL_VERTICES = 18056
 ANNY_VERTICES = 13718
 DEFAULT_FPS = 30.0
 _TEMPLATE_HELP = (

@@ -25,10 +25,21 @@ import torch
 from .._checks import check_shape
 from ..geometry import mesh
 from ..io.atomic import atomic_write
+from ..topology import CANONICAL_VERTICES
 
-__all__ = ["LAYOUT_FORMAT", "MarkerLayout", "available_layouts", "place_markers", "vertex_normals"]
+__all__ = [
+    "LAYOUT_FORMAT",
+    "MAX_MARKER_DISTANCE",
+    "MarkerLayout",
+    "available_layouts",
+    "place_markers",
+    "vertex_normals",
+]
 
 LAYOUT_FORMAT = "unibody.marker_layout/1"
+MAX_MARKER_DISTANCE = 0.2
+"""Metres: the farthest a layout's marker may sit from the skin (shipped markers: 9.5 mm; cluster
+plates and derived session markers: a few cm). Farther, it is not a marker on this body."""
 
 
 def _layout_dir():
@@ -58,6 +69,9 @@ class MarkerLayout:
 
     def __post_init__(self) -> None:
         m = len(self.labels)
+        bad = [x for x in self.labels if not isinstance(x, str) or not x or x.startswith("*")]
+        if bad:
+            raise ValueError(f"labels: expected names that are not empty and do not start with '*', got {bad[0]!r}")
         if len(set(self.labels)) != m:
             dup = sorted({x for x in self.labels if self.labels.count(x) > 1})
             raise ValueError(f"labels: duplicate marker labels {dup}")
@@ -81,25 +95,69 @@ class MarkerLayout:
 
     @classmethod
     def load(cls, name_or_path: str | Path) -> MarkerLayout:
-        """A shipped layout by name (:func:`available_layouts`) or a layout JSON file."""
+        """A shipped layout by name (:func:`available_layouts`) or a layout JSON file.
+
+        Raises:
+            ValueError: an unknown name, or a file that is not a layout (one line naming the
+                file and the field: unreadable, not JSON, another format, no markers, a vertex
+                that is not a canonical vertex id, a distance that is not finite or farther
+                than :data:`MAX_MARKER_DISTANCE` from the skin, a label that is empty or
+                starts with ``*`` (the mark of unlabelled points)).
+        """
         p = Path(name_or_path)
-        if p.suffix == ".json" or p.exists():
-            text = p.read_text()
-        else:
+        if not (p.suffix == ".json" or p.exists()):
             res = _layout_dir() / f"{name_or_path}.json"
             if not res.is_file():
                 raise ValueError(
                     f"layout: unknown layout {str(name_or_path)!r}; shipped: {', '.join(available_layouts())}"
                 )
-            text = res.read_text()
-        data = json.loads(text)
-        if data.get("format") != LAYOUT_FORMAT:
-            raise ValueError(f"layout {name_or_path}: expected format {LAYOUT_FORMAT!r}, got {data.get('format')!r}")
-        markers = data["markers"]
-        labels = tuple(markers)
-        vertices = torch.tensor([int(markers[x]["vertex"]) for x in labels], dtype=torch.long)
-        distance = torch.tensor([float(markers[x]["distance"]) for x in labels], dtype=torch.float32)
-        return cls(str(data["name"]), labels, vertices, distance)
+            return cls._parse(res.read_text(), str(name_or_path))
+        try:
+            text = p.read_bytes().decode("utf-8")
+        except OSError as exc:
+            raise ValueError(f"{p}: cannot read the layout ({exc.strerror or exc})") from None
+        except UnicodeDecodeError:
+            raise ValueError(f"{p}: not a layout JSON file (not UTF-8 text)") from None
+        return cls._parse(text, str(p))
+
+    @classmethod
+    def _parse(cls, text: str, where: str) -> MarkerLayout:
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(
+                f"{where}: not a layout JSON file ({exc.msg} at line {exc.lineno} column {exc.colno})"
+            ) from None
+        if not isinstance(data, dict) or data.get("format") != LAYOUT_FORMAT:
+            got = data.get("format") if isinstance(data, dict) else f"a JSON {type(data).__name__}"
+            raise ValueError(f"{where}: expected a layout (format {LAYOUT_FORMAT!r}), got {got!r}")
+        if data.get("topology", "canonical") != "canonical":
+            raise ValueError(f"{where}: topology: expected 'canonical', got {data['topology']!r}")
+        name, markers = data.get("name"), data.get("markers")
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"{where}: name: expected a non-empty string, got {name!r}")
+        if not isinstance(markers, dict) or not markers:
+            raise ValueError(f"{where}: markers: expected an object of one or more markers, got {markers!r:.80}")
+        vertices, distance = [], []
+        for label, m in markers.items():
+            at = f"{where}: markers.{label}"
+            if not isinstance(m, dict):
+                raise ValueError(f"{at}: expected an object with vertex and distance, got {m!r:.80}")
+            v, d = m.get("vertex"), m.get("distance")
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < CANONICAL_VERTICES:
+                raise ValueError(
+                    f"{at}.vertex: expected a canonical vertex id in 0..{CANONICAL_VERTICES - 1}, got {v!r}"
+                )
+            if isinstance(d, bool) or not isinstance(d, int | float) or not abs(d) <= MAX_MARKER_DISTANCE:
+                raise ValueError(
+                    f"{at}.distance: expected metres from the skin within +-{MAX_MARKER_DISTANCE:g}, got {d!r}"
+                )
+            vertices.append(v)
+            distance.append(float(d))
+        try:
+            return cls(name, tuple(markers), torch.tensor(vertices), torch.tensor(distance, dtype=torch.float32))
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
 
     def to_json(self) -> dict:
         markers = {

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..topology import TopologyTransfer
+from ..topology import CANONICAL_VERTICES, TopologyTransfer
 from . import _register
 from ._mesh import as_triangles, as_vertices
 from ._register import RegistrationConfig
@@ -29,7 +29,6 @@ __all__ = ["REGISTRATION_VERSION", "cache_key", "cache_path", "topology_transfer
 
 # Bump whenever the algorithm's output changes: old cache entries are then ignored.
 REGISTRATION_VERSION = 1
-_CANONICAL_VERTICES = 18056
 _KEYS = frozenset(("version", "face_vertices", "weights", "wrap", "unit", "scale", "rotation", "translation"))
 _UNITS = ("m", "cm", "mm", "in")
 
@@ -59,7 +58,7 @@ def _checker(num_source_vertices: int):
         version = _expect(a, "version", "i", ())
         if int(version) != REGISTRATION_VERSION:
             raise ValueError(f"version: {int(version)}, expected {REGISTRATION_VERSION}")
-        n = _CANONICAL_VERTICES
+        n = CANONICAL_VERTICES
         _in_range("face_vertices", _expect(a, "face_vertices", "i", (n, 3)), 0, num_source_vertices)
         if np.abs(_expect(a, "weights", "f", (n, 4)).sum(1) - 1).max() > 1e-9:
             raise ValueError("weights: a vertex's weights do not sum to 1")
