@@ -198,3 +198,21 @@ def test_bad_inputs():
         render_image([MeshSpec(v, f)], view="side")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="^supersample:"):
         render_image([MeshSpec(v, f)], supersample=0)
+
+
+def test_far_scenes_and_empty_frames():
+    # A scene 1e20 m away was framed forever (lo + 1 == lo: the search step stayed 0).
+    v, f = icosphere(1, 0.3, (0.0, 0.5, 0.0))
+    far = [MeshSpec(v * 0.1 + [1e20, 0.0, 0.0], f, (1.0, 0.0, 0.0), "far")]
+    cam = frame_camera(far, "front", 64, 48)
+    assert np.isfinite(cam.eye).all() and abs(cam.target[0] - 1e20) < 1e6
+    with pytest.raises(ValueError, match="expected finite values"):
+        frame_camera([MeshSpec(v * np.nan, f, (1.0, 0.0, 0.0), "nan")], "front", 64, 48)
+    # With a camera, an empty scene is the background and the ground.
+    near = [MeshSpec(v, f, (1.0, 0.0, 0.0), "near")]
+    cam = frame_camera(near, "three_quarter", 64, 48)
+    empty = render_image([], width=64, height=48, camera=cam, supersample=1)
+    full = render_image(near, width=64, height=48, camera=cam, supersample=1)
+    assert empty.shape == full.shape == (48, 64, 3) and np.abs(empty.astype(int) - full).sum() > 0
+    with pytest.raises(ValueError, match="at least one MeshSpec"):
+        render_image([], width=64, height=48)

@@ -470,6 +470,36 @@ def test_record_reads_a_marker_take(tmp_path):
     assert _near(img.astype(np.int64), marker_color("LFHD"), 60).sum() >= 2
 
 
+def test_record_frames_a_take_on_its_subject_through_glitches_and_gaps(tmp_path, capsys):
+    from unibody.mocap.c3d import MarkerSequence, write_npz
+
+    rng = np.random.default_rng(2)
+    pts = rng.normal(scale=0.2, size=(40, 12, 3)) + [0.0, 0.0, 1.0]  # Z-up lab
+    pts[:, 0] = [1e27, 0.0, 0.0]  # a labelled column glitched 1e27 m away: the recorder hung
+    pts[:, 11] = [8.0, 0.0, 1.0]  # a reflection 8 m away
+    pts[30:] = np.nan  # the subject walked out: a frame with nothing to draw failed the recording
+    labels = tuple(f"M{i}" for i in range(11)) + ("*1",)
+    take = tmp_path / "take.npz"
+    write_npz(take, MarkerSequence(pts, labels, ("",) * 12, 40.0))
+    from unibody.cli.view_sources import load_item
+    from unibody.viz.viewer.record import render_frames
+
+    (track,) = load_item(take, {}).markers
+    assert (track.kinds[:30, 0] == GHOST).all() and (track.kinds[:30, 11] == GHOST).all()
+    assert (track.kinds[:30, 1:11] == LABELLED).all()
+    images = np.stack(list(render_frames([load_item(take, {})], fps=40, width=160, height=120)))
+    assert len(images) == 40
+    drawn = (np.abs(images.astype(int) - images[-1]).sum(-1) > 30).any(-1)  # (T, W): columns of markers
+    assert drawn[:30].any(1).all() and not drawn[30:].any()  # the subject, then the empty floor
+    rows = np.flatnonzero((np.abs(images[0].astype(int) - images[-1]).sum(-1) > 30).any(1))
+    assert rows.max() - rows.min() > 40  # framed on the subject (0.2 m spread), not on the glitch
+    assert main(["view", str(take), "--record", str(tmp_path / "x.png"), "--fps", "4", "--size", "64x48"]) == 0
+    write_npz(take, MarkerSequence(np.full((3, 2, 3), np.nan), ("A", "B"), ("", ""), 40.0))
+    capsys.readouterr()
+    assert main(["view", str(take), "--record", str(tmp_path / "y.png")]) == 3
+    assert "take.npz: no marker is visible in any of its 3 frames" in capsys.readouterr().err
+
+
 def test_mesh_sequences_show_their_own_meshes(tmp_path):
     from unibody.cli._common import InputError
     from unibody.cli.view_sources import load_item

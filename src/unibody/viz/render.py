@@ -119,9 +119,11 @@ def _fit_axis(a: np.ndarray, h: np.ndarray, tan_half: float) -> tuple[float, flo
         return float(np.max(a - reach)), float(np.min(a + reach))
 
     lo = float(np.max(h)) + 1e-6
-    hi = lo + 1.0
+    step = max(1.0, float(np.ptp(a)), float(np.ptp(h)))  # past 1e16 m, lo + 1 == lo: doubling 0 never ends
+    hi = lo + step
     while interval(hi)[0] > interval(hi)[1]:
-        hi = lo + 2 * (hi - lo)
+        step *= 2
+        hi = lo + step
     for _ in range(60):
         mid = 0.5 * (lo + hi)
         s_lo, s_hi = interval(mid)
@@ -138,6 +140,8 @@ def frame_camera(
 ) -> Camera:
     """A camera looking from ``view`` that fits the meshes' bounding box with a margin."""
     pts = _all_vertices(meshes)
+    if not np.isfinite(pts).all():
+        raise ValueError("meshes: expected finite vertices to frame a camera on")
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     back = _view_direction(view)
@@ -332,7 +336,7 @@ def _linear_to_srgb8(c: np.ndarray) -> np.ndarray:
 
 def _contact_shadow(meshes: Sequence[MeshSpec], ground_y: float) -> tuple[np.ndarray, np.ndarray, float]:
     """A soft darkening map on the ground: ``(map (Nz, Nx) in [0, 1], origin (x, z), cell)``."""
-    pts = np.concatenate([m.vertices for m in meshes if len(m.vertices)])
+    pts = np.concatenate([m.vertices for m in meshes if len(m.vertices)] or [np.zeros((0, 3))])
     height = pts[:, 1] - ground_y
     keep = height > -0.05
     pts, height = pts[keep], height[keep]
@@ -500,8 +504,11 @@ def render_image(
     renders at that many times the size and downsamples with LANCZOS
     (``1``: no anti-aliasing).  Meshes are expected to wind counter-clockwise
     seen from outside; pass ``cull_backfaces=False`` for meshes that do not.
+    With a ``camera``, ``meshes`` may be empty (the background and the ground).
     """
-    meshes = _check_meshes(meshes)
+    meshes = list(meshes)
+    if meshes or camera is None:
+        meshes = _check_meshes(meshes)
     if int(width) != width or width < 1 or int(height) != height or height < 1:
         raise ValueError(f"width, height: expected positive integers, got {width}, {height}")
     if int(supersample) != supersample or not 1 <= supersample <= 8:
@@ -520,7 +527,10 @@ def render_image(
     img = np.empty((H, W, 3), dtype=np.float32)
     img[:] = bg_rows[:, None, :]
 
-    pix, rgb, depth = _shade(meshes, camera, W, H, cull_backfaces)
+    if meshes:
+        pix, rgb, depth = _shade(meshes, camera, W, H, cull_backfaces)
+    else:
+        pix, rgb, depth = np.zeros(0, np.int64), np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
 
     ground = _ground(camera, W, H, ground_y, meshes, bg_rows) if ground_y is not None else None
     if ground is not None:

@@ -168,13 +168,19 @@ class Viewer:
         for b in self._bodies:  # the whole motion, not its first frame: a walk must stay in view
             sample = np.unique(np.linspace(0, b.source.num_frames - 1, 5).astype(np.int64))
             pts.append(b.source.frames(sample)[0].reshape(-1, 3)[::7] + b.offset)
+        ghosts = []  # framed only within 2 m of the rest: a reflection 100 km away would shrink the subject to a dot
         for m in self._markers:
             p = m.track.points.reshape(-1, 3)
-            pts.append(p[np.isfinite(p).all(1)] + m.offset)
+            seen, ghost = np.isfinite(p).all(1), m.track.kinds.reshape(-1) == GHOST
+            pts.append(p[seen & ~ghost] + m.offset)
+            ghosts.append(p[seen & ghost] + m.offset)
         pts = [p for p in pts if len(p)]
         if not pts:
             return
         allp = np.concatenate(pts)
+        lo, hi = allp.min(0) - 2.0, allp.max(0) + 2.0
+        near = np.concatenate([np.zeros((0, 3)), *ghosts])
+        allp = np.concatenate([allp, near[((near >= lo) & (near <= hi)).all(1)]])
         lo, hi = allp.min(0), allp.max(0)
         centre = 0.5 * (lo + hi)
         cam = self.server.initial_camera

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..render import Camera, MeshSpec, frame_camera, render_image
-from .tracks import BODY_COLORS, SceneItem, local_frame, marker_colors
+from .tracks import BODY_COLORS, GHOST, SceneItem, local_frame, marker_colors
 
 __all__ = ["frame_count", "png_paths", "record", "render_frames"]
 
@@ -25,8 +25,15 @@ _OCTA_V = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0,
 _OCTA_F = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
 
 
-def _scene(items: Sequence[SceneItem], t: float, spacing: float, overlay: bool, radius: float) -> list[MeshSpec]:
-    """Meshes of every item at time ``t`` (seconds)."""
+def _scene(
+    items: Sequence[SceneItem], t: float, spacing: float, overlay: bool, radius: float, near: np.ndarray | None = None
+) -> list[MeshSpec]:
+    """Meshes of every item at time ``t`` (seconds).
+
+    Ghost markers (far from their subject) are drawn only within ``near`` (a (2, 3) box: the
+    rest grown by 2 m), and not at all without one; the camera frames what is drawn, so a
+    reflection 100 km away neither shrinks the subject to a dot nor hangs the renderer.
+    """
     meshes, colour = [], 0
     for i, item in enumerate(items):
         shift = np.array([0.0 if overlay else i * spacing, 0.0, 0.0])
@@ -44,6 +51,11 @@ def _scene(items: Sequence[SceneItem], t: float, spacing: float, overlay: bool, 
             k = local_frame(int(round(t * track.fps)), track.fps, track.fps, track.num_frames)
             pts = track.points[k]
             seen = np.isfinite(pts).all(1)
+            ghost = track.kinds[k] == GHOST
+            if near is None:
+                seen &= ~ghost
+            else:
+                seen &= ~ghost | ((pts >= near[0]) & (pts <= near[1])).all(1)
             colors = marker_colors(track.labels, track.kinds[k])
             for p, c in zip(pts[seen], colors[seen], strict=True):
                 meshes.append(MeshSpec(p + shift + radius * _OCTA_V, _OCTA_F, tuple(c / 255.0), "marker"))
@@ -89,6 +101,9 @@ def render_frames(
     n = frame_count(items, fps=fps, turntable=turntable)
     if turntable is not None:
         scene = _scene(items, 0.0, spacing, overlay, radius)
+        if not scene:
+            raise ValueError("items: nothing to draw at the first frame (no body, no visible marker)")
+        scene = _scene(items, 0.0, spacing, overlay, radius, _near(scene))
         base = frame_camera(scene, "front", width, height)
         for i in range(n):
             cam = _turn(base, 2 * math.pi * i / n)
@@ -96,10 +111,22 @@ def render_frames(
         return
     times = np.arange(n) / fps
     probe = [m for t in {0.0, duration / 2, duration} for m in _scene(items, t, spacing, overlay, radius)]
+    if not probe:  # nothing visible at the first, middle and last frames: look everywhere
+        probe = [m for t in np.linspace(0, duration, 33) for m in _scene(items, float(t), spacing, overlay, radius)]
+    if not probe:
+        raise ValueError("items: nothing to draw (no body, no visible marker near its subject)")
+    near = _near(probe)
+    probe = [m for t in {0.0, duration / 2, duration} for m in _scene(items, t, spacing, overlay, radius, near)]
     camera = frame_camera(probe, "three_quarter", width, height)
-    for t in times:
-        scene = _scene(items, float(t), spacing, overlay, radius)
+    for t in times:  # a frame with nothing visible is the empty floor
+        scene = _scene(items, float(t), spacing, overlay, radius, near)
         yield render_image(scene, width=width, height=height, camera=camera, supersample=supersample)
+
+
+def _near(meshes: list[MeshSpec], margin: float = 2.0) -> np.ndarray:
+    """(2, 3) the meshes' bounding box grown by ``margin`` m: where ghost markers are drawn."""
+    pts = np.concatenate([m.vertices for m in meshes])
+    return np.stack([pts.min(0) - margin, pts.max(0) + margin])
 
 
 def frame_count(items: Sequence[SceneItem], *, fps: float, turntable: float | None = None) -> int:
