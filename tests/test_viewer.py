@@ -497,7 +497,9 @@ def test_record_frames_a_take_on_its_subject_through_glitches_and_gaps(tmp_path,
     write_npz(take, MarkerSequence(np.full((3, 2, 3), np.nan), ("A", "B"), ("", ""), 40.0))
     capsys.readouterr()
     assert main(["view", str(take), "--record", str(tmp_path / "y.png")]) == 3
-    assert "take.npz: no marker is visible in any of its 3 frames" in capsys.readouterr().err
+    assert "take.npz: no marker is visible within 100000 m of the origin in any of its 3 frames" in (
+        capsys.readouterr().err
+    )
 
 
 def test_mesh_sequences_show_their_own_meshes(tmp_path):

@@ -235,13 +235,15 @@ def _marker_kinds(points: np.ndarray, labels: tuple[str, ...]) -> np.ndarray:
     """(T, M) kinds: named markers, ``*n`` points near the subject, points away from it.
 
     Away: an unlabelled point past 1.2 m from its frame's main cluster, a labelled one past
-    ``FAR_RADIUS`` (2 m, the labeler's rule: a glitch, not a body part). The viewer does not
-    frame its camera on them.
+    ``FAR_RADIUS`` (2 m, the labeler's rule: a glitch, not a body part), any point past
+    ``MAX_DISTANCE`` from the origin. The viewer does not frame its camera on them.
     """
     from ..mocap.pipeline import FAR_RADIUS, main_cluster
 
-    near = main_cluster(points, radius=1.2)
-    within = main_cluster(points, radius=FAR_RADIUS)
+    with np.errstate(invalid="ignore"):
+        sane = (np.abs(points) <= MAX_DISTANCE).all(2)  # a point at 1e30 m is never framed, even alone
+    near = main_cluster(points, radius=1.2) & sane
+    within = main_cluster(points, radius=FAR_RADIUS) & sane
     starred = np.array([x.startswith("*") for x in labels], dtype=bool)
     kinds = np.where(within, LABELLED, GHOST).astype(np.uint8)
     kinds[:, starred] = np.where(near[:, starred], UNLABELLED, GHOST)
@@ -257,8 +259,13 @@ def marker_item(path: Path, layers: dict, solve: str | None, up: str) -> SceneIt
     if seq.num_frames == 0 or seq.num_markers == 0:
         raise InputError(f"{path}: no marker samples (frames {seq.num_frames}, markers {seq.num_markers})")
     points = lab_to_unibody(seq.points, up=up).astype(np.float32)
-    if not np.isfinite(points).all(2).any():
-        raise InputError(f"{path}: no marker is visible in any of its {seq.num_frames} frames")
+    with np.errstate(invalid="ignore"):
+        shown = (np.abs(points) <= MAX_DISTANCE).all(2)  # NaN (missing) and absurd points are not
+    if not shown.any():
+        raise InputError(
+            f"{path}: no marker is visible within {MAX_DISTANCE:g} m of the origin "
+            f"in any of its {seq.num_frames} frames"
+        )
     labels = seq.qualified_labels
     residual = None
     bodies: tuple = ()

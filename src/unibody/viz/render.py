@@ -343,13 +343,16 @@ def _contact_shadow(meshes: Sequence[MeshSpec], ground_y: float) -> tuple[np.nda
     cell = 0.01
     pad = 0.6
     if len(pts) == 0:
-        return np.zeros((2, 2), dtype=np.float32), np.zeros(2), cell
+        return np.zeros((3, 3), dtype=np.float32), np.zeros(2), cell
     lo = pts[:, [0, 2]].min(axis=0) - pad
     hi = pts[:, [0, 2]].max(axis=0) + pad
+    if not np.isfinite(hi - lo).all() or float((hi - lo).max()) > 1e4:  # no shadow worth a grid 10 km wide
+        return np.zeros((3, 3), dtype=np.float32), lo, cell
     nx, nz = (np.ceil((hi - lo) / cell).astype(int) + 1).tolist()
     if nx * nz > 4_000_000:  # very large scenes: coarser grid
         cell *= math.sqrt(nx * nz / 4_000_000)
         nx, nz = (np.ceil((hi - lo) / cell).astype(int) + 1).tolist()
+    nx, nz = max(nx, 3), max(nz, 3)  # past 1e16 m, lo + pad == lo: a grid of one row has no inside
     ix = np.clip(((pts[:, 0] - lo[0]) / cell).astype(int), 0, nx - 1)
     iz = np.clip(((pts[:, 2] - lo[1]) / cell).astype(int), 0, nz - 1)
     flat = iz * nx + ix
