@@ -16,6 +16,10 @@ from ._common import UsageError, _progress
 __all__ = ["add_view_parser", "run_view"]
 
 
+MAX_RECORD_IMAGES = 100_000
+"""The most images ``--record`` makes: 55 minutes of video at 30 fps."""
+
+
 def add_view_parser(sub, parents: list[argparse.ArgumentParser]) -> None:
     """The ``view`` subcommand's arguments."""
     view = sub.add_parser(
@@ -119,10 +123,6 @@ def run_view(args: argparse.Namespace, force: bool = False) -> None:
             time.sleep(min(0.2, max(0.0, end - time.monotonic())))
     finally:
         viewer.stop()
-
-
-MAX_RECORD_IMAGES = 100_000
-"""The most images ``--record`` makes: 55 minutes of video at 30 fps."""
 
 
 def _longest(items: list) -> str:

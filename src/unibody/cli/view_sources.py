@@ -319,7 +319,7 @@ def _glb_item(path: Path) -> SceneItem:
     if data[:4] != b"glTF":
         raise InputError(f"{path}: not a binary glTF file (starts with {data[:4]!r}, expected b'glTF')")
     try:
-        still = tuple((v, f) for v, f in read_glb_scene(data))
+        still = tuple(read_glb_scene(data))
     except ValueError as exc:
         raise InputError(f"{path}: not a glTF file the viewer reads ({str(exc)[:200]})") from None
     if not still:

@@ -106,12 +106,11 @@ def _check_rotations(R: np.ndarray, where: str) -> None:
         return
     with np.errstate(all="ignore"):
         err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-1, -2))
-        bad = np.argwhere(~(err <= 1e-3) | ~(np.linalg.det(R) > 0))
+        det = np.linalg.det(R)
+        bad = np.argwhere(~(err <= 1e-3) | ~(det > 0))
     if len(bad):
         at = tuple(bad[0])
-        raise ValueError(
-            f"{where.format(*at)} is not a rotation matrix (|RᵀR - I| = {err[at]:.3g}, det {np.linalg.det(R)[at]:.3g})"
-        )
+        raise ValueError(f"{where.format(*at)} is not a rotation matrix (|RᵀR - I| = {err[at]:.3g}, det {det[at]:.3g})")
 
 
 def _to_canonical(R: torch.Tensor, names: list[str], orient: torch.Tensor | None, path: Path) -> torch.Tensor:
