@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
 from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
 
 from unibody.rig import Rig
 
@@ -140,3 +143,51 @@ def anny_layer64():
 @pytest.fixture(params=[torch.float32, torch.float64], ids=["f32", "f64"])
 def dtype(request) -> torch.dtype:
     return request.param
+
+
+# ----------------------------------------------------------------------------- property-test helpers
+
+
+def change_fields(data, fields: dict, extra: list[str], replacement) -> dict:
+    """One or two of an npz's ``fields`` dropped, added (``extra`` names: a (4, 8) array) or replaced.
+
+    ``data`` is hypothesis's ``st.data()``; ``replacement(draw, old)`` makes the new array.
+    """
+    for _ in range(data.draw(st.integers(1, 2), label="changes")):
+        key = data.draw(st.sampled_from(sorted(fields) + extra), label="key")
+        if key not in fields:
+            fields[key] = np.zeros((4, 8))
+        elif data.draw(st.booleans(), label="drop"):
+            del fields[key]
+        else:
+            fields[key] = replacement(data.draw, fields[key])
+    return fields
+
+
+def json_paths(x, at: tuple = (), width: int = 8) -> list[tuple]:
+    """Every path into a JSON tree: dict keys and list indices (the first ``width`` of each)."""
+    out = [at]
+    if isinstance(x, dict):
+        for k, v in list(x.items())[:width]:
+            out += json_paths(v, (*at, k), width)
+    elif isinstance(x, list):
+        for i, v in enumerate(x[:width]):
+            out += json_paths(v, (*at, i), width)
+    return out
+
+
+def change_json(draw, tree, kind: str, values, keys=None) -> None:
+    """Change one place of a JSON ``tree`` in place: ``kind`` "drop" deletes a dict entry, "add"
+    puts a new key (drawn from ``keys``) in a dict, anything else replaces a value; new values
+    are drawn from the strategy ``values`` (property tests)."""
+    paths = [p for p in json_paths(tree) if p]
+    path = paths[draw(st.integers(0, len(paths) - 1))]
+    parent = tree
+    for k in path[:-1]:
+        parent = parent[k]
+    if kind == "drop" and isinstance(parent, dict):
+        del parent[path[-1]]
+    elif kind == "add" and isinstance(parent, dict) and keys is not None:
+        parent[draw(keys)] = copy.deepcopy(draw(values))  # a fresh [] or {}: never shared, never a cycle
+    else:
+        parent[path[-1]] = copy.deepcopy(draw(values))

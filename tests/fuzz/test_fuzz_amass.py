@@ -16,6 +16,7 @@ import numpy as np
 from hypothesis import event, given
 from hypothesis import strategies as st
 
+from conftest import change_fields
 from unibody.convert.amass import AmassTake, read_take
 
 _SPLIT = {"root_orient": 3, "pose_body": 63, "pose_jaw": 3, "pose_eye": 6, "pose_hand": 90}
@@ -66,14 +67,7 @@ def _replacement(draw, old: np.ndarray) -> np.ndarray:  # noqa: ANN001
 @given(family=st.sampled_from(["smplh", "smplx"]), split=st.booleans(), data=st.data())
 def test_read_take_gives_a_checked_take_or_names_the_file(tmp_path_factory, family, split, data):
     fields = _take(family, split)
-    for _ in range(data.draw(st.integers(1, 2), label="changes")):
-        key = data.draw(st.sampled_from(sorted(fields) + ["dmpls", "poses", "root_orient"]), label="key")
-        if key not in fields:
-            fields[key] = np.zeros((4, 8))
-        elif data.draw(st.booleans(), label="drop"):
-            del fields[key]
-        else:
-            fields[key] = _replacement(data.draw, fields[key])
+    change_fields(data, fields, ["dmpls", "poses", "root_orient"], _replacement)
     path = tmp_path_factory.mktemp("amass") / "take.npz"
     np.savez(path, **fields)
     try:

@@ -21,6 +21,7 @@ import pytest
 from hypothesis import event, given
 from hypothesis import strategies as st
 
+from conftest import change_json
 from unibody.io.glb import MeshSpec, SkinnedAnimation, write_glb, write_skinned_glb
 from unibody.io.glb_scene import read_glb_scene
 
@@ -67,18 +68,6 @@ def _join(gltf: dict, blob: bytes) -> bytes:
     return struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body
 
 
-def _paths(x, at=()) -> list[tuple]:
-    """Every path into the JSON tree (dict keys and list indices)."""
-    out = [at]
-    if isinstance(x, dict):
-        for k, v in x.items():
-            out += _paths(v, (*at, k))
-    elif isinstance(x, list):
-        for i, v in enumerate(x[:8]):
-            out += _paths(v, (*at, i))
-    return out
-
-
 _VALUES = st.sampled_from([-1, 0, 1, 2**40, 0.5, float("nan"), "x", None, [], {}, [0, 0, 0], {"a": 1}])
 
 
@@ -89,15 +78,7 @@ def damaged(draw) -> bytes:
     kind = draw(st.sampled_from(["value", "drop", "flip", "cut"]))
     event(kind)
     if kind in ("value", "drop"):
-        paths = [p for p in _paths(gltf) if p]
-        path = paths[draw(st.integers(0, len(paths) - 1))]
-        parent = gltf
-        for k in path[:-1]:
-            parent = parent[k]
-        if kind == "drop" and isinstance(parent, dict):
-            del parent[path[-1]]
-        else:
-            parent[path[-1]] = draw(_VALUES)
+        change_json(draw, gltf, kind, _VALUES)
         return _join(gltf, blob)
     if kind == "flip":
         blob = bytearray(blob)

@@ -20,6 +20,7 @@ import torch
 from hypothesis import event, given
 from hypothesis import strategies as st
 
+from conftest import change_json
 from unibody.mocap.layout import MAX_MARKER_DISTANCE, MarkerLayout, place_markers
 from unibody.topology import CANONICAL_VERTICES
 
@@ -27,17 +28,6 @@ GOOD = MarkerLayout.load("cmu41").to_json()
 _VALUES = st.sampled_from(
     [-1, 0, 2**40, 1.5, float("nan"), float("inf"), 1e30, -0.3, "x", "", "*", None, True, [], {}, {"vertex": 3}]
 )
-
-
-def _paths(x, at=()) -> list[tuple]:
-    out = [at]
-    if isinstance(x, dict):
-        for k, v in list(x.items())[:6]:
-            out += _paths(v, (*at, k))
-    elif isinstance(x, list):
-        for i, v in enumerate(x[:4]):
-            out += _paths(v, (*at, i))
-    return out
 
 
 @st.composite
@@ -49,17 +39,7 @@ def damaged(draw) -> str:
         text = json.dumps(data)
         return text[: draw(st.integers(0, len(text) - 1))]
     for _ in range(draw(st.integers(1, 3))):
-        paths = [p for p in _paths(data) if p]
-        path = paths[draw(st.integers(0, len(paths) - 1))]
-        parent = data
-        for k in path[:-1]:
-            parent = parent[k]
-        if kind == "drop" and isinstance(parent, dict):
-            del parent[path[-1]]
-        elif kind == "add" and isinstance(parent, dict):
-            parent[draw(st.sampled_from(["", "*9", "extra", "vertex", "distance"]))] = draw(_VALUES)
-        else:
-            parent[path[-1]] = draw(_VALUES)
+        change_json(draw, data, kind, _VALUES, st.sampled_from(["", "*9", "extra", "vertex", "distance"]))
     return json.dumps(data, allow_nan=True)
 
 

@@ -21,6 +21,7 @@ import torch
 from hypothesis import event, given
 from hypothesis import strategies as st
 
+from conftest import change_fields
 from unibody import JOINT_NAMES
 from unibody.convert import ConvertOptions
 from unibody.convert.formats import reader
@@ -91,14 +92,7 @@ def _rotations(m: np.ndarray) -> bool:
 @given(data=st.data())
 def test_read_soma_gives_a_writable_motion_or_names_the_file(tmp_path_factory, data):
     fields = _file(data.draw)
-    for _ in range(data.draw(st.integers(1, 2), label="changes")):
-        key = data.draw(st.sampled_from(sorted(fields) + ["mocap_frame_rate", "global_scale"]), label="key")
-        if key not in fields:
-            fields[key] = np.zeros((4, 8))
-        elif data.draw(st.booleans(), label="drop"):
-            del fields[key]
-        else:
-            fields[key] = _replacement(data.draw, fields[key])
+    change_fields(data, fields, ["mocap_frame_rate", "global_scale"], _replacement)
     path = tmp_path_factory.mktemp("soma") / "take.npz"
     np.savez(path, **fields)
     try:
