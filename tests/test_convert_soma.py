@@ -197,6 +197,7 @@ def test_soma_reader_errors_name_the_file_and_field(tmp_path, orient, parents):
             "poses: frame 1, joint 4 is not a rotation matrix",
         ),
         ({"fps": np.asarray(-1.0)}, "fps: expected a positive number"),
+        ({"fps": np.asarray(30 + 5j)}, r"fps: expected a positive number, got np.complex128\(30\+5j\)"),  # was 30
         ({"joint_orient": None}, "missing field 'joint_orient'"),
         # found by tests/fuzz/test_fuzz_soma.py: a raw numpy error, then motions read from garbage
         ({"poses": good["poses"][:0], "transl": good["transl"][:0]}, r"poses: expected at least one frame"),

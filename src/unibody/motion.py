@@ -119,7 +119,7 @@ def _text(x: np.ndarray, where: str) -> str:
 
 def check_fps(fps: object, name: str = "fps") -> float:
     """Frames per second as a float: finite and positive (and at most 100,000)."""
-    if isinstance(fps, bool | str):
+    if isinstance(fps, bool | str | complex) or np.iscomplexobj(fps):  # float() would drop an imaginary part
         raise ValueError(f"{name}: expected a positive number, got {fps!r}")
     try:
         value = float(fps)  # type: ignore[arg-type]

@@ -85,7 +85,7 @@ def _replacement(draw, old: np.ndarray) -> np.ndarray:  # noqa: ANN001
 
 
 def _rotations(m: np.ndarray) -> bool:
-    m = m.reshape(-1, 3, 3)
+    m = np.asarray(m, np.float64).reshape(-1, 3, 3)  # float16 is read too (as float64)
     return bool(np.all(np.abs(np.swapaxes(m, -1, -2) @ m - np.eye(3)) <= 1e-3) and np.all(np.linalg.det(m) > 0))
 
 
