@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import event, given
+from hypothesis import event, example, given
 from hypothesis import strategies as st
 
 from unibody.cli import main
@@ -69,7 +69,15 @@ def files(draw) -> tuple[str, dict]:
     return "meshes", {"vertices": verts, "faces": _BOX_FACES, "topology": np.asarray("box"), "fps": np.asarray(fps)}
 
 
+def _only_between() -> tuple[str, dict]:
+    """A take visible only between its first, middle and last frames (found by CI's draw)."""
+    pts = np.full((4, 12, 3), np.nan)
+    pts[1, 0] = 0.0
+    return "markers", {"points": pts, "labels": tuple(f"M{i}" for i in range(11)) + ("*1",), "fps": 0.5}
+
+
 @given(case=files())
+@example(case=_only_between())
 def test_view_records_any_take_or_refuses_in_one_line(case):
     pytest.importorskip("PIL")
     kind, fields = case

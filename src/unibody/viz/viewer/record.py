@@ -110,13 +110,15 @@ def render_frames(
             yield render_image(scene, width=width, height=height, camera=cam, supersample=supersample)
         return
     times = np.arange(n) / fps
-    probe = [m for t in {0.0, duration / 2, duration} for m in _scene(items, t, spacing, overlay, radius)]
+    looks = [0.0, duration / 2, duration]
+    probe = [m for t in looks for m in _scene(items, t, spacing, overlay, radius)]
     if not probe:  # nothing visible at the first, middle and last frames: look everywhere
-        probe = [m for t in np.linspace(0, duration, 33) for m in _scene(items, float(t), spacing, overlay, radius)]
+        looks = [float(t) for t in np.linspace(0, duration, 33)]
+        probe = [m for t in looks for m in _scene(items, t, spacing, overlay, radius)]
     if not probe:
         raise ValueError("items: nothing to draw (no body, no visible marker near its subject)")
     near = _near(probe)
-    probe = [m for t in {0.0, duration / 2, duration} for m in _scene(items, t, spacing, overlay, radius, near)]
+    probe = [m for t in looks for m in _scene(items, t, spacing, overlay, radius, near)]
     camera = frame_camera(probe, "three_quarter", width, height)
     for t in times:  # a frame with nothing visible is the empty floor
         scene = _scene(items, float(t), spacing, overlay, radius, near)
