@@ -277,6 +277,7 @@ def _fit_hands(template, p, theta0, pts, nrms, samples, phase, kappa, prior, log
     return out, torch.stack(scores).amin(0).sum()
 
 
+@torch.enable_grad()  # an optimisation: it descends a gradient whatever its caller (convert runs under no_grad)
 def _run_phase(template, p, theta0, src_points, src_normals, samples, phase, kappa, prior, log):
     """Adam on the free parameters of one phase, with nearest neighbours refreshed ``outer`` times."""
     joint_mask, group_mask, similarity = _masks(template, phase.free)
