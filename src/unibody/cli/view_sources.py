@@ -127,8 +127,7 @@ def resolved_item(item: SceneItem, progress=None) -> SceneItem | None:
                 progress(f"resolving self-intersections of {body.name}: frames {start}-{stop - 1} of {body.num_frames}")
             params = body._params.expand(stop - start, -1)
             pose, transl = body._pose[start:stop], body._transl[start:stop]
-            with torch.enable_grad():  # the command runs under no_grad; the solver descends a gradient
-                fixed = resolve_self_intersections(occupancy, body.layer, params, pose, transl=transl)
+            fixed = resolve_self_intersections(occupancy, body.layer, params, pose, transl=transl)
             poses.append(fixed.pose.detach())
         pose = torch.cat(poses).numpy()
         name = f"{body.name} (resolved)"
@@ -163,8 +162,7 @@ def panoman_item(item: SceneItem, frame: int, progress=None) -> SceneItem | None
     joints = (target[ids] * w[..., None].double()).sum(1)  # (77, 3)
     handles = torch.arange(0, target.shape[0], 900)
     points = target[handles]
-    with torch.enable_grad():  # the LBS fit descends a gradient; the command runs under no_grad
-        lbs = fit_body(layer, handles, points[None], regressor_matrix(ids, w, target.shape[0]), joints[None])
+    lbs = fit_body(layer, handles, points[None], regressor_matrix(ids, w, target.shape[0]), joints[None])
     result = fit(model, lbs.shape[0], Handles(handles.numpy(), points.numpy()), reference=lbs.vertices[0].detach())
     verts = np.asarray(result.vertices, np.float32)
     name = f"{body.name} frame {frame} (PanoMan fit)"

@@ -40,6 +40,7 @@ class Resolved:
     steps: torch.Tensor
 
 
+@torch.enable_grad()  # it descends a gradient whatever its caller (commands run under no_grad)
 def resolve_self_intersections(
     occupancy: BodyOccupancy,
     layer: BodyLayer,

@@ -157,6 +157,7 @@ def _regress(regressor: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
     return torch.sparse.mm(regressor, flat).reshape(-1, b, 3).permute(1, 0, 2)
 
 
+@torch.enable_grad()  # it descends a gradient whatever its caller (commands run under no_grad)
 def fit_body(
     layer: BodyLayer,
     vertex_ids: torch.Tensor,
