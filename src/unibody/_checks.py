@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["check_device", "check_shape", "check_finite", "check_like", "check_tensor"]
+__all__ = ["check_device", "check_grad_mode", "check_shape", "check_finite", "check_like", "check_tensor"]
 
 
 def _fmt(spec: str) -> str:
@@ -92,3 +92,11 @@ def check_device(name: str, arg: str = "device") -> torch.device:
         if (dev.index or 0) >= count:
             raise ValueError(f"{arg}: {name!r} is not on this machine ({count} CUDA devices)")
     return dev
+
+
+def check_grad_mode(what: str) -> None:
+    """RuntimeError under ``torch.inference_mode()`` for ``what``, an optimiser that descends a
+    gradient (it enables gradients itself under ``torch.no_grad()``, but inference tensors cannot
+    be differentiated)."""
+    if torch.is_inference_mode_enabled():
+        raise RuntimeError(f"{what} descends a gradient: call it outside torch.inference_mode() (no_grad is fine)")

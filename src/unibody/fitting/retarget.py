@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .._checks import check_finite, check_shape
+from .._checks import check_finite, check_grad_mode, check_shape
 from ..body import BodyLayer, PreparedIdentity
 from ..geometry.procrustes import kabsch, polar_svd
 from ..geometry.rotations import matrix_to_axis_angle, shortest_arc, skew
@@ -323,6 +323,7 @@ def retarget(
     Inputs are cast to the layer's dtype (the solve runs in it; float64 is the safer choice
     for long position-only motions).
     """
+    check_grad_mode("retarget")
     cfg = config or RetargetConfig()
     if not isinstance(layer, BodyLayer) or layer.identity is None:
         raise ValueError("layer: expected a BodyLayer with an identity backend (e.g. BodyLayer.from_pca())")

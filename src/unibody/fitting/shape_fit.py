@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .._checks import check_finite, check_like, check_shape
+from .._checks import check_finite, check_grad_mode, check_like, check_shape
 from ..body import BodyLayer
 from ..identity.base import IdentityBackend
 
@@ -182,6 +182,7 @@ def fit_identity(
     Raises:
         TypeError / ValueError: bad layer, targets (shape, dtype, device, NaN), counts, lr or init.
     """
+    check_grad_mode("fit_identity")
     _check_args(layer, targets, steps, lbfgs_steps, lr)
     b = targets.shape[0]
     ref = layer.skeleton.bind_rot

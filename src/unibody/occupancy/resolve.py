@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .._checks import check_finite, check_shape
+from .._checks import check_finite, check_grad_mode, check_shape
 from ..body import BodyLayer
 from .data import generator
 from .field import BodyOccupancy
@@ -74,6 +74,7 @@ def resolve_self_intersections(
     ``callback(step, pose)`` sees the current (B, 77, 3) pose before every step and after the
     last (e.g. to count intersecting triangles).
     """
+    check_grad_mode("resolve_self_intersections")
     check_shape(pose, "B 77 3", name="pose")
     check_finite(pose, "pose")
     if not isinstance(steps, int) or steps < 0:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .._checks import check_grad_mode
 from ..body import BodyLayer
 from ..geometry.procrustes import kabsch
 from ..geometry.rotations import matrix_to_axis_angle, shortest_arc
@@ -182,6 +183,7 @@ def fit_body(
         joint_steps, mesh_steps: iterations of the two stages.
         pose_prior: weight of |pose|^2 in stage 2 (per joint, radians^2, against m^2 residuals).
     """
+    check_grad_mode("fit_body")
     joint_targets = joint_targets.detach()
     # The constraint indices and the regressor are constants: take them to the targets' device.
     dev = joint_targets.device

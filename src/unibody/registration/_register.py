@@ -32,6 +32,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from .._checks import check_grad_mode
 from ..geometry.mesh import face_areas, face_normals, vertex_normals
 from ..geometry.rotations import matrix_to_axis_angle
 from ..geometry.tetra import TetCorrespondence, lift_tetrahedra, tet_barycentric
@@ -302,6 +303,7 @@ def register(
         ValueError: bad shapes, non-finite values, empty faces, out-of-range ids, or a mesh
             whose size or proportions are not a human body's.
     """
+    check_grad_mode("register")
     config = _check_config(PRESETS["default"] if config is None else config)
     clock = [("start", time.perf_counter())]
     v = as_vertices(vertices)
@@ -333,6 +335,7 @@ def normalize(
     Returns:
         The similarity taking the source to metres, Y up, facing +Z, feet on y = 0.
     """
+    check_grad_mode("normalize")
     config = _check_config(PRESETS["default"] if config is None else config)
     v = as_vertices(vertices)
     stages = _Stages(config, v, as_triangles(faces, v.shape[0]))
