@@ -191,3 +191,15 @@ def change_json(draw, tree, kind: str, values, keys=None) -> None:
         parent[draw(keys)] = copy.deepcopy(draw(values))  # a fresh [] or {}: never shared, never a cycle
     else:
         parent[path[-1]] = copy.deepcopy(draw(values))
+
+
+def bvhio_positions(path, frames: int) -> np.ndarray:
+    """(T, J, 3) world positions of a BVH's joints in its own units, read by bvhio (End Sites left out)."""
+    bvhio = pytest.importorskip("bvhio")
+    root = bvhio.readAsHierarchy(str(path))
+    layout = [entry[0] for entry in root.layout()]
+    out = []
+    for f in range(frames):
+        root.loadPose(f)
+        out.append([list(j.PositionWorld) for j in layout])
+    return np.asarray(out, np.float64)

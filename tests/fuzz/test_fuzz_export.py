@@ -30,6 +30,7 @@ import torch
 from hypothesis import event, example, given
 from hypothesis import strategies as st
 
+from conftest import bvhio_positions
 from unibody.convert import ConvertOptions
 from unibody.convert._body import body_for
 from unibody.convert.bvh_export import write_bvh
@@ -117,13 +118,7 @@ def _bvh_joints(path, frames: int) -> tuple[np.ndarray, float]:
     bvhio = pytest.importorskip("bvhio")
     container = bvhio.readAsBvh(str(path))
     assert container.FrameCount == frames
-    root = bvhio.readAsHierarchy(str(path))
-    layout = [entry[0] for entry in root.layout()]
-    out = []
-    for f in range(frames):
-        root.loadPose(f)
-        out.append([list(j.PositionWorld) for j in layout])
-    return np.asarray(out, np.float64) / 100.0, 1.0 / container.FrameTime
+    return bvhio_positions(path, frames) / 100.0, 1.0 / container.FrameTime
 
 
 # ----------------------------------------------------------------------------- inputs
