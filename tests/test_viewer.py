@@ -9,6 +9,7 @@ package; it skips with the reason where one is missing.
 from __future__ import annotations
 
 import io
+import math
 import os
 import shutil
 import socket
@@ -215,12 +216,32 @@ def test_view_bad_arguments(tmp_path, capsys):
     assert "--record: expected a .mp4 or .png file" in capsys.readouterr().err
     assert main(["view", "--record", str(tmp_path / "x.png"), "--size", "big"]) == 2
     assert main(["view", "--turntable", "3"]) == 2
+    for spacing in ("0", "-1", "1e20", "nan"):  # 1e20 drew an empty floor, 1e300 overflowed the camera
+        assert main(["view", "--spacing", spacing, "--record", str(tmp_path / "x.png")]) == 2
+        assert f"--spacing: expected metres in (0, 100], got {spacing!r}" in capsys.readouterr().err
     take = tmp_path / "take.npz"
     from unibody.mocap.c3d import MarkerSequence, write_npz
 
     write_npz(take, MarkerSequence(np.zeros((2, 1, 3)), ("LFHD",), ("",), 100.0))
     assert main(["view", str(take), "--solve", "pig99", "--record", str(tmp_path / "x.png")]) == 2
     assert "--solve: layout: unknown layout 'pig99'" in capsys.readouterr().err
+
+
+def test_spacing_is_checked_by_the_recorder_and_the_viewer():
+    from unibody.viz.viewer.record import render_frames
+    from unibody.viz.viewer.tracks import MAX_SPACING, check_spacing
+
+    assert check_spacing(np.float32(2)) == 2.0 and check_spacing(MAX_SPACING) == MAX_SPACING
+    for bad in (0, -1.0, 1e20, math.inf, math.nan, True, "2"):
+        with pytest.raises(ValueError, match="spacing: expected metres between items in"):
+            check_spacing(bad)
+    with pytest.raises(ValueError, match="spacing"):
+        next(render_frames([SceneItem("box", bodies=(BoxBody(),))], spacing=1e300))
+    if __import__("importlib").util.find_spec("viser") is not None:
+        from unibody.viz.viewer.app import Viewer
+
+        with pytest.raises(ValueError, match="spacing"):  # before a server starts
+            Viewer([SceneItem("box", bodies=(BoxBody(),))], port=0, spacing=-2.0)
 
 
 def test_view_refuses_hostile_mesh_files_and_endless_recordings(tmp_path, capsys):

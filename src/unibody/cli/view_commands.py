@@ -38,7 +38,7 @@ def add_view_parser(sub, parents: list[argparse.ArgumentParser]) -> None:
     view.add_argument("--port", default="8080", help="port to serve on (the next free one if taken; 0: any)")
     view.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this machine only)")
     view.add_argument("--overlay", action="store_true", help="draw the files in one place, not side by side")
-    view.add_argument("--spacing", default="1.5", help="metres between files side by side (default 1.5)")
+    view.add_argument("--spacing", default="1.5", help="metres between files side by side (default 1.5, at most 100)")
     view.add_argument("--solve", metavar="LAYOUT", help="C3D: solve the body from the labels (pig39, cmu41, ...)")
     view.add_argument("--up", default="z", choices=("z", "y"), help="C3D: vertical axis of the lab (default z)")
     view.add_argument(
@@ -54,12 +54,12 @@ def add_view_parser(sub, parents: list[argparse.ArgumentParser]) -> None:
     view.add_argument("--seconds", metavar="S", help="serve for S seconds, then stop (default: until Ctrl-C)")
 
 
-def _number(value: str, name: str, what: str, low: float = 0.0, integer: bool = False) -> float:
+def _number(value: str, name: str, what: str, low: float = 0.0, integer: bool = False, high: float = math.inf) -> float:
     try:
         x = float(value)
     except ValueError:
         x = math.nan
-    if not (math.isfinite(x) and x > low) or (integer and x != int(x)):
+    if not (math.isfinite(x) and low < x <= high) or (integer and x != int(x)):
         raise UsageError(f"{name}: expected {what}, got {value!r}")
     return int(x) if integer else x
 
@@ -97,7 +97,9 @@ def _items(args: argparse.Namespace) -> list:
 
 def run_view(args: argparse.Namespace, force: bool = False) -> None:
     """Serve or record the files of ``args`` (see :func:`add_view_parser`)."""
-    spacing = _number(args.spacing, "--spacing", "a positive number of metres")
+    from ..viz.viewer.tracks import MAX_SPACING
+
+    spacing = _number(args.spacing, "--spacing", f"metres in (0, {MAX_SPACING:g}]", high=MAX_SPACING)
     port = _port(args.port)
     seconds = None if args.seconds is None else _number(args.seconds, "--seconds", "a positive number of seconds")
     if args.record is not None:

@@ -23,7 +23,7 @@ from typing import Literal
 
 import numpy as np
 
-from .tracks import BODY_COLORS, GHOST, BodySource, MarkerTrack, SceneItem, local_frame, marker_colors
+from .tracks import BODY_COLORS, GHOST, BodySource, MarkerTrack, SceneItem, check_spacing, local_frame, marker_colors
 
 __all__ = ["Viewer"]
 
@@ -83,6 +83,7 @@ class Viewer:
             raise ValueError("items: expected at least one item to show, got none")
         if layout not in ("side", "overlay"):
             raise ValueError(f"layout: expected 'side' or 'overlay', got {layout!r}")
+        spacing = check_spacing(spacing)
         self.items = tuple(items)
         self.fps = max(item.fps for item in self.items)
         self.num_frames = max(1, int(round(max(item.duration for item in self.items) * self.fps)) + 1)

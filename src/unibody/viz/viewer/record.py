@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..render import Camera, MeshSpec, frame_camera, render_image
-from .tracks import BODY_COLORS, GHOST, SceneItem, local_frame, marker_colors
+from .tracks import BODY_COLORS, GHOST, SceneItem, check_spacing, local_frame, marker_colors
 
 __all__ = ["frame_count", "png_paths", "record", "render_frames"]
 
@@ -94,6 +94,7 @@ def render_frames(
     """
     if not (math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps: expected a positive frame rate, got {fps}")
+    spacing = check_spacing(spacing)
     if turntable is not None and not (math.isfinite(turntable) and turntable > 0):
         raise ValueError(f"turntable: expected a positive number of seconds, got {turntable}")
     duration = max(item.duration for item in items)

@@ -8,6 +8,8 @@ indices, so this floor needs no body model (the ``unibody view`` command builds 
 
 from __future__ import annotations
 
+import math
+import numbers
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -22,10 +24,12 @@ __all__ = [
     "LABELLED",
     "UNLABELLED",
     "UNLABELLED_COLOR",
+    "MAX_SPACING",
     "BodySource",
     "IdentityControls",
     "MarkerTrack",
     "SceneItem",
+    "check_spacing",
     "local_frame",
     "nearest_joint",
     "marker_color",
@@ -39,6 +43,17 @@ UNLABELLED_COLOR = (140, 140, 140)
 GHOST_COLOR = (255, 0, 255)
 BODY_COLORS = ((217, 140, 115), (115, 153, 217), (242, 191, 89), (153, 191, 140), (179, 140, 204))
 """RGB (0..255) of the bodies, in the order they are shown."""
+MAX_SPACING = 100.0
+"""Metres between items side by side, at most: one picture still shows a few of them (at 1e20
+m the recorder drew an empty floor, at 1e300 the camera overflowed)."""
+
+
+def check_spacing(spacing: float) -> float:
+    """``spacing`` as a float, if it is a number of metres in (0, :data:`MAX_SPACING`]; else ValueError."""
+    x = float(spacing) if isinstance(spacing, numbers.Real) and not isinstance(spacing, bool) else math.nan
+    if not 0 < x <= MAX_SPACING:
+        raise ValueError(f"spacing: expected metres between items in (0, {MAX_SPACING:g}], got {spacing!r}")
+    return x
 
 
 def local_frame(g: int, master_fps: float, fps: float, n: int) -> int:
