@@ -111,6 +111,23 @@ def icosahedron() -> tuple[np.ndarray, np.ndarray]:
     return v / np.linalg.norm(v, axis=1, keepdims=True), f
 
 
+def icosphere(levels: int, radius: float = 1.0, centre=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """The icosahedron split ``levels`` times (each triangle into four at its edge midpoints),
+    projected to the sphere of ``radius`` about ``centre``: float64 vertices, int64 outward triangles."""
+    v, f = icosahedron()
+    for _ in range(levels):
+        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        unique, inverse = np.unique(edges, axis=0, return_inverse=True)
+        mid = v[unique[:, 0]] + v[unique[:, 1]]
+        mid /= np.linalg.norm(mid, axis=1, keepdims=True)
+        ids = len(v) + inverse.reshape(3, -1)  # midpoints of edges 01, 12, 20
+        v = np.concatenate([v, mid])
+        a, b, c = f.T
+        m01, m12, m20 = ids
+        f = np.concatenate([np.stack(x, 1) for x in ((a, m01, m20), (b, m12, m01), (c, m20, m12), (m01, m12, m20))])
+    return v * radius + np.asarray(centre), f.astype(np.int64)
+
+
 def fk_loop(parents, rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
     """Independent FK reference: one joint at a time, 4x4 matrices; world transforms (B, J, 4, 4)."""
     b, j = rot.shape[:2]

@@ -140,6 +140,16 @@ def test_a_template_of_another_count_and_bad_fields_are_refused(smplh, tmp_path)
         meshes.read_meshes(tmp_path / "y.npz", ConvertOptions(template=tmp_path / "a.ply"))
 
 
+def test_a_template_the_registration_refuses_is_named(smplh, tmp_path, monkeypatch):
+    def refuse(vertices, faces, name, **kw):
+        raise ValueError("vertices: not a body the canonical mesh can wrap: ...")
+
+    monkeypatch.setattr(meshes, "topology_transfer", refuse)
+    np.savez(tmp_path / "y.npz", vertices=np.zeros((2, 6890, 3), np.float32), topology=np.array("smpl"))
+    with pytest.raises(ValueError, match=r"^--template smpl_rest.obj: vertices: not a body the canonical mesh"):
+        meshes.read_meshes(tmp_path / "y.npz", ConvertOptions(template=smplh["obj"]))
+
+
 def test_an_mhr_asset_folder_is_a_template_and_its_lod_is_picked_by_vertex_count(tmp_path, monkeypatch):
     from mhr_format import write_mhr_assets
     from unibody.identity.mhr import MHRIdentity

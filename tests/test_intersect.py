@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import icosahedron
+from conftest import icosphere
 from unibody.geometry.intersect import _orient_signs, intersecting_pairs, triangles_intersect
 
 
@@ -17,38 +17,15 @@ def _tri(*points: tuple[float, float, float]) -> torch.Tensor:
     return torch.tensor([points], dtype=torch.float64)
 
 
-def _subdivide(points: list[np.ndarray], tris: list[tuple[int, int, int]]) -> list[tuple[int, int, int]]:
-    """Split every triangle into four at its edge midpoints (appended to ``points``)."""
-    midpoint: dict[tuple[int, int], int] = {}
-    out = []
-    for tri in tris:
-        mids = []
-        for i, j in zip(tri, tri[1:] + tri[:1], strict=True):
-            key = (min(i, j), max(i, j))
-            if key not in midpoint:
-                midpoint[key] = len(points)
-                points.append((points[i] + points[j]) / 2)
-            mids.append(midpoint[key])
-        (a, b, c), (ab, bc, ca) = tri, mids
-        out += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
-    return out
-
-
-def icosphere(subdivisions: int = 3, radius: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """A closed sphere mesh: an icosahedron subdivided 4-to-1, vertices projected to the sphere."""
-    verts, faces = icosahedron()
-    points = list(verts)
-    tris = [tuple(int(i) for i in f) for f in faces]
-    for _ in range(subdivisions):
-        tris = _subdivide(points, tris)
-    v = np.asarray(points)
-    v = radius * v / np.linalg.norm(v, axis=1, keepdims=True)
-    return torch.from_numpy(v), torch.tensor(tris, dtype=torch.int64)
+def sphere(levels: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+    """The unit icosphere (``conftest.icosphere``) as float64 / int64 tensors."""
+    v, f = icosphere(levels)
+    return torch.from_numpy(v), torch.from_numpy(f)
 
 
 def two_spheres(distance: float) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Two unit icospheres ``distance`` apart along X, as one mesh; also the first sphere's face count."""
-    v, f = icosphere()
+    v, f = sphere()
     shift = torch.tensor([distance, 0.0, 0.0], dtype=v.dtype)
     return torch.cat([v, v + shift]), torch.cat([f, f + v.shape[0]]), f.shape[0]
 
@@ -134,7 +111,7 @@ def test_shared_vertex_excluded_but_touching_reported():
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_icosphere_has_no_self_intersections(dtype):
-    v, f = icosphere()
+    v, f = sphere()
     assert f.shape == (1280, 3)
     pairs = intersecting_pairs(v.to(dtype), f)
     assert pairs.shape == (0, 2) and pairs.dtype == torch.int64
@@ -185,7 +162,7 @@ def test_folded_elbow_intersects(body):
 
 
 def test_bad_inputs():
-    v, f = icosphere(0)
+    v, f = sphere(0)
     with pytest.raises(ValueError, match=r"vertices: expected shape \(V, 3\), got \(5, 2\)"):
         intersecting_pairs(torch.zeros(5, 2), f)
     with pytest.raises(ValueError, match="faces: expected shape"):

@@ -11,7 +11,7 @@ import pytest
 import scipy.sparse as sp
 import torch
 
-from conftest import icosahedron
+from conftest import icosphere
 from unibody.panoman import reconstruct as recon_module
 from unibody.panoman.mesh import EdgeTopology
 from unibody.panoman.reconstruct import connection_maps, reconstruct, reconstruct_rla
@@ -26,29 +26,6 @@ from unibody.panoman.rla import (
 )
 
 # ----------------------------------------------------------------------------- meshes
-
-
-def subdivided_icosphere(levels: int) -> tuple[np.ndarray, np.ndarray]:
-    """Icosahedron split ``levels`` times (each triangle into four), projected to the unit sphere."""
-    v, f = icosahedron()
-    verts = [tuple(p) for p in v]
-    for _ in range(levels):
-        mid: dict[tuple[int, int], int] = {}
-        new = []
-        for tri in f:
-            corner = []
-            for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
-                key = (min(a, b), max(a, b))
-                if key not in mid:
-                    mid[key] = len(verts)
-                    verts.append(tuple((np.asarray(verts[a]) + np.asarray(verts[b])) / 2))
-                corner.append(mid[key])
-            ab, bc, ca = corner
-            a, b, c = tri
-            new += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        f = np.asarray(new)
-    x = np.asarray(verts)
-    return x / np.linalg.norm(x, axis=1, keepdims=True), f
 
 
 def cube() -> tuple[np.ndarray, np.ndarray]:
@@ -248,7 +225,7 @@ def test_rla_broadcasts_and_inverts(canonical, posed):
 
 
 def test_rla_gradcheck():
-    v, f = subdivided_icosphere(1)
+    v, f = icosphere(1)
     topo = topo_of(f, len(v))
     gen = torch.Generator().manual_seed(0)
     rest = torch.as_tensor(v)[None] + 0.02 * torch.randn(1, len(v), 3, generator=gen, dtype=torch.float64)
@@ -268,7 +245,7 @@ def stacked(x: torch.Tensor, topo: EdgeTopology) -> torch.Tensor:
 
 
 def test_shell_jacobian_matches_autograd():
-    v, f = subdivided_icosphere(1)
+    v, f = icosphere(1)
     topo = topo_of(f, len(v))
     gen = torch.Generator().manual_seed(1)
     x = torch.as_tensor(v) * torch.tensor([1.0, 1.5, 0.7], dtype=torch.float64)
@@ -364,7 +341,7 @@ def test_round_trip_float32_batched(canonical, posed):
 
 def test_inconsistent_input_cg_and_direct_agree(monkeypatch):
     """Slightly inconsistent input takes the CG path; forcing the direct path gives the same frames."""
-    v, f = subdivided_icosphere(2)
+    v, f = icosphere(2)
     topo = topo_of(f, len(v))
     x = torch.as_tensor(v)[None] * torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)
     gen = torch.Generator().manual_seed(4)

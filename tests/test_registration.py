@@ -24,11 +24,20 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import icosahedron
+from conftest import icosahedron, icosphere
 from unibody import assets
 from unibody.geometry.tetra import build_correspondence, closest_point_on_triangles, quads_to_triangles
 from unibody.io.obj import read_obj
-from unibody.registration import PRESETS, Phase, RegistrationConfig, _cache, normalize, register, topology_transfer
+from unibody.registration import (
+    MAX_FIT_P95,
+    PRESETS,
+    Phase,
+    RegistrationConfig,
+    _cache,
+    normalize,
+    register,
+    topology_transfer,
+)
 from unibody.registration._mesh import outward
 from unibody.topology import TopologyTransfer
 
@@ -134,6 +143,16 @@ def test_transfer_of_another_identity_matches_the_hand_made_one(registration, re
     assert err.mean() < 5e-3, f"mean {1e3 * err.mean():.2f} mm"  # measured 3.1 mm
 
 
+def test_a_mesh_the_body_does_not_fit_is_refused(registration):
+    # A body-sized ellipsoid passes the size and proportion checks, and the projection would put
+    # any wrap on its surface: it used to register, and convert a mesh sequence into garbage.
+    # The fit before projection tells them apart (SMPL, SMPL-X, Anny: P95 0.5-0.7 mm; this: 31 mm).
+    assert registration.stats.icp_p95_distance < MAX_FIT_P95 / 5
+    v, f = icosphere(3)
+    with pytest.raises(ValueError, match=r"vertices: not a body the canonical mesh can wrap: .* over [1-9]\d\.\d mm"):
+        register(v * [0.25, 0.85, 0.15] + [0.0, 0.85, 0.0], f, config=PRESETS["coarse"])
+
+
 def test_normalization_recovers_units_and_axes(registration, remeshed):
     n = registration.normalization
     assert n.unit == "cm" and n.scale == 0.01
@@ -194,7 +213,7 @@ def test_cache_hit_returns_identical_arrays(registration, remeshed, tmp_path, mo
     monkeypatch.setenv("UNIBODY_CACHE_DIR", str(tmp_path))
     calls = []
 
-    def fake_register(vertices, faces, *, config=None):
+    def fake_register(vertices, faces, *, config=None, check_fit=True):
         calls.append(config)
         return registration
 
@@ -357,7 +376,7 @@ def test_a_corrupt_registration_entry_is_rebuilt_with_a_warning(tmp_path, monkey
     monkeypatch.setenv("UNIBODY_CACHE_DIR", str(tmp_path))
     calls = []
 
-    def fake_register(vertices, faces, *, config=None):
+    def fake_register(vertices, faces, *, config=None, check_fit=True):
         calls.append(config)
         return _fake_registration(len(v))
 

@@ -8,23 +8,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import icosahedron
+from conftest import icosphere
 from unibody.viz.render import Camera, MeshSpec, frame_camera, project, render_image, render_png
-
-
-def icosphere(subdivisions: int, radius: float = 1.0, centre=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
-    v, f = icosahedron()
-    for _ in range(subdivisions):
-        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        unique, inverse = np.unique(edges, axis=0, return_inverse=True)
-        mid = v[unique[:, 0]] + v[unique[:, 1]]
-        mid /= np.linalg.norm(mid, axis=1, keepdims=True)
-        ids = len(v) + inverse.reshape(3, -1)  # midpoints of edges 01, 12, 20
-        v = np.concatenate([v, mid])
-        a, b, c = f.T
-        m01, m12, m20 = ids
-        f = np.concatenate([np.stack(x, 1) for x in ((a, m01, m20), (b, m12, m01), (c, m20, m12), (m01, m12, m20))])
-    return v * radius + np.asarray(centre), f
 
 
 def quad(x0, x1, y0, y1, z, facing: int = 1) -> tuple[np.ndarray, np.ndarray]:

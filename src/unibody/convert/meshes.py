@@ -121,7 +121,10 @@ def _mhr_template(folder: Path, n: int) -> tuple[np.ndarray, np.ndarray]:
 def _cached_transfer(path: str, stamp: int, n: int) -> TopologyTransfer:
     v, faces = _template(Path(path), n)
     with torch.no_grad():
-        return topology_transfer(v, faces, Path(path).stem)
+        try:
+            return topology_transfer(v, faces, Path(path).stem)
+        except ValueError as exc:  # the template, not the input file, is what the user must change
+            raise ValueError(f"--template {Path(path).name}: {exc}") from exc
 
 
 def template_transfer(template: str | Path, num_vertices: int) -> TopologyTransfer:

@@ -8,10 +8,11 @@ from ._articulated import Phase
 from ._cache import REGISTRATION_VERSION, topology_transfer
 from ._nonrigid import IcpSettings
 from ._normalize import Normalization
-from ._register import PRESETS, Registration, RegistrationConfig, RegistrationStats, normalize, register
+from ._register import MAX_FIT_P95, PRESETS, Registration, RegistrationConfig, RegistrationStats, normalize, register
 
 __all__ = [
     "IcpSettings",
+    "MAX_FIT_P95",
     "Normalization",
     "PRESETS",
     "REGISTRATION_VERSION",

