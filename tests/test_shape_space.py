@@ -24,6 +24,7 @@ from unibody.identity.shape_space import (
     HIPS_M,
     AnnyRecipe,
     ShapeSource,
+    _duration,
     anny_params,
     anny_sampler,
     backend_sampler,
@@ -215,6 +216,8 @@ def test_builder_resumes_to_the_same_space(generated, tmp_path):
     with pytest.raises(KeyboardInterrupt):
         build_shape_space([smpl], part, checkpoint=ckpt, progress=stop, **kw)
     assert ckpt.is_file() and not part.exists()
+    assert calls[0].startswith("chunk 1/3: 40 samples") and calls[0].endswith(" left")  # with an ETA
+    assert [_duration(x) for x in (42, 4500, 11520, 1e6)] == ["42 s", "75 min", "3.2 h", "12 days"]
     lines = []
     build_shape_space([smpl], part, checkpoint=ckpt, progress=lines.append, **kw)
     assert lines[0].startswith(f"resuming from {ckpt}: chunk 2/3")
@@ -237,6 +240,9 @@ def test_builder_errors(generated, tmp_path):
         build_shape_space([smpl], out, components=40, rank=30)
     with pytest.raises(ValueError, match="identities: 4 samples cannot give 8 components"):
         build_shape_space([smpl], out, identities=2, components=8, rank=8)
+    for seed in (-1, 1.5, True):
+        with pytest.raises(ValueError, match=f"seed: expected an int >= 0, got {seed!r}"):
+            build_shape_space([smpl], out, identities=20, components=8, rank=8, seed=seed)
     assert not out.exists()
 
 
@@ -294,6 +300,7 @@ def test_cli_builds_from_generated_files(generated, exact_transfers, tmp_path, c
         (["--from", "anny", "anny"], 2, "--from: each kind at most once"),
         (["--from", "smpl=/no/such/model.npz"], 3, "--from smpl: no such file: /no/such/model.npz"),
         (["--from", "anny", "--components", "300"], 2, "--rank: expected >= --components"),
+        (["--from", "anny", "--seed", "-1"], 2, "--seed: expected an integer >= 0, got -1"),  # was numpy's, unnamed
     ],
 )
 def test_cli_errors(tmp_path, capsys, extra, code, message):

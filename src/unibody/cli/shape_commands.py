@@ -54,7 +54,7 @@ def run_shape_space(args: argparse.Namespace, force: bool) -> None:
     from ..io.atomic import check_output, output_lock
 
     for name, value, lo in (("--identities", args.identities, 1), ("--components", args.components, 1),
-                            ("--chunk", args.chunk, 1)):  # fmt: skip
+                            ("--chunk", args.chunk, 1), ("--seed", args.seed, 0)):  # fmt: skip
         if value < lo:
             raise UsageError(f"{name}: expected an integer >= {lo}, got {value}")
     if args.rank < args.components:

@@ -314,6 +314,8 @@ def build_shape_space(
             raise ValueError(f"{label}: expected an int >= {lo}, got {x!r}")
     if not components <= rank:
         raise ValueError(f"components: {components} exceeds rank {rank}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:  # numpy said "expected non-negative integer"
+        raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
     counts = _counts(sources, identities)
     samples = sum(counts) * (2 if mirror else 1)
     if samples <= components:
@@ -345,9 +347,10 @@ def build_shape_space(
         if ckpt is not None:
             _save_checkpoint(ckpt, state, c + 1, config, elapsed)
         kept = float((state.singular**2).sum()) / max(state.sum_sq, 1e-300)
+        eta = elapsed / (c + 1) * (n_chunks - c - 1)  # the chunks are alike: the mean so far
         say(
             f"chunk {c + 1}/{n_chunks}: {state.count} samples, {time.perf_counter() - t0:.1f} s, "
-            f"variance in rank {state.basis.shape[0]}: {100 * kept:.4f} %"
+            f"variance in rank {state.basis.shape[0]}: {100 * kept:.4f} %, about {_duration(eta)} left"
         )
     k = min(components, state.basis.shape[0])
     mean, comps, std = ipca_finalize(state, k)
@@ -375,6 +378,15 @@ def build_shape_space(
     )
     meta["asset_bytes"] = size
     return meta
+
+
+def _duration(seconds: float) -> str:
+    """``seconds`` for a person: 42 s, 75 min, 3.2 h, 12 days."""
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h" if seconds < 172800 else f"{seconds / 86400:.0f} days"
 
 
 def recipe_dict(recipe: AnnyRecipe) -> dict:
