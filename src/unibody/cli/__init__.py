@@ -59,7 +59,9 @@ def _parser() -> argparse.ArgumentParser:
     add_convert_parser(sub, [writes])
     mocap = sub.add_parser("mocap", parents=[common], help="optical mocap: label raw C3D point clouds, solve the body")
     msub = mocap.add_subparsers(dest="mocap_command", required=True)
-    lab = msub.add_parser("label", parents=[writes], help="raw markers (.c3d/.npz) -> labelled markers (.c3d/.npz)")
+    lab = msub.add_parser(
+        "label", parents=[writes], help="raw markers (.c3d/.trc/.npz) -> labelled markers (.c3d/.npz)"
+    )
     lab.add_argument("markers", type=Path)
     lab.add_argument("--out", type=Path, required=True, help="labelled markers to write (.c3d or .npz)")
     lab.add_argument("--model", default="cmu41", help="shipped labeler (cmu41 | cmu41_large | pig39) or a weights file")
@@ -82,13 +84,15 @@ def _parser() -> argparse.ArgumentParser:
         help="then check the labels against a body solved from them: each point takes the solved marker it sits "
         "on, where that is clear (the model's layout: the one it was trained on by default, or a JSON file)",
     )  # fmt: skip
-    sol = msub.add_parser("solve", parents=[writes], help="labelled markers (.c3d/.npz) -> unibody motion (.npz)")
+    sol = msub.add_parser("solve", parents=[writes], help="labelled markers (.c3d/.trc/.npz) -> unibody motion (.npz)")
     sol.add_argument("markers", type=Path)
     sol.add_argument("--out", type=Path, required=True, help="motion file to write (.npz)")
     sol.add_argument("--layout", default="cmu41", help="shipped layout (pig35 | pig39 | cmu41 | superset) or JSON")
     sol.add_argument("--up", default="z", choices=("z", "y"))
     sol.add_argument("--png", type=Path, help="also render the middle frame with its markers (.png)")
-    lay = msub.add_parser("layout", parents=[writes], help="one labelled frame (.c3d/.npz) -> the session's layout")
+    lay = msub.add_parser(
+        "layout", parents=[writes], help="one labelled frame (.c3d/.trc/.npz) -> the session's layout"
+    )
     lay.add_argument("markers", type=Path)
     lay.add_argument("--out", type=Path, required=True, help="layout to write (.json)")
     lay.add_argument("--base", default="pig39", help="layout whose labels the file uses (shipped name or JSON)")

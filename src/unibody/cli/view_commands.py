@@ -33,14 +33,17 @@ def add_view_parser(sub, parents: list[argparse.ArgumentParser]) -> None:
         "PNG frames instead (no browser). Without files: one Anny body (--body pca: the native PCA body).",
     )
     view.add_argument("files", nargs="*", type=Path, metavar="FILE",
-                      help="motion (.npz, .bvh, .amc, SOMA/AMASS npz), mesh sequence (.npz), .c3d, .glb")  # fmt: skip
+                      help="motion (.npz, .bvh, .amc, SOMA/AMASS npz), mesh sequence (.npz), .c3d, .trc, "
+                           ".glb")  # fmt: skip
     view.add_argument("--body", choices=("anny", "pca"), help="also show one body of this backend in the T-pose")
     view.add_argument("--port", default="8080", help="port to serve on (the next free one if taken; 0: any)")
     view.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this machine only)")
     view.add_argument("--overlay", action="store_true", help="draw the files in one place, not side by side")
     view.add_argument("--spacing", default="1.5", help="metres between files side by side (default 1.5, at most 100)")
     view.add_argument("--solve", metavar="LAYOUT", help="C3D: solve the body from the labels (pig39, cmu41, ...)")
-    view.add_argument("--up", default="z", choices=("z", "y"), help="C3D: vertical axis of the lab (default z)")
+    view.add_argument(
+        "--up", default="z", choices=("z", "y"), help="C3D, TRC: the lab's vertical axis (default z; OpenSim: y)"
+    )
     view.add_argument(
         "--resolve", action="store_true", help="also show each motion moved out of self-intersection (~1 s a frame)"
     )

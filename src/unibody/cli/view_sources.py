@@ -370,7 +370,7 @@ def load_item(path: Path, layers: dict, *, solve: str | None = None, up: str = "
     if not path.is_file():
         raise InputError(f"{path}: no such file" if not path.exists() else f"{path}: is not a file")
     suffix = path.suffix.lower()
-    if suffix == ".c3d":
+    if suffix in (".c3d", ".trc"):
         return marker_item(path, layers, solve, up)
     if suffix == ".glb":
         return _glb_item(path)

@@ -173,7 +173,7 @@ def model_output_labels(labels: Sequence[str], groups: dict[str, Sequence[str]] 
 
 
 def read_markers(path: str | Path, *, markers_only: bool = True) -> MarkerSequence:
-    """Read a ``.c3d`` or a ``.npz`` marker file.
+    """Read a ``.c3d``, ``.trc`` (:mod:`unibody.mocap.trc`) or ``.npz`` marker file.
 
     Args:
         path: the file; the suffix picks the format.
@@ -196,7 +196,11 @@ def read_markers(path: str | Path, *, markers_only: bool = True) -> MarkerSequen
         return _read_c3d(path, markers_only)
     if suffix == ".npz":
         return _read_npz(path)
-    raise ValueError(f"{path}: unknown marker file type {suffix!r}; expected .c3d or .npz")
+    if suffix == ".trc":
+        from .trc import read_trc
+
+        return read_trc(path)
+    raise ValueError(f"{path}: unknown marker file type {suffix!r}; expected .c3d, .trc or .npz")
 
 
 def write_npz(path: str | Path, seq: MarkerSequence) -> None:

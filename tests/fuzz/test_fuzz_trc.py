@@ -1,0 +1,85 @@
+"""Property: any TRC text gives a checked MarkerSequence or a ValueError naming the file.
+
+Never another exception type, an infinite or far-away point, or a sequence whose shape
+disagrees with its labels. Seeded and bounded (profiles in tests/conftest.py);
+``--hypothesis-profile=long`` runs 1000 examples each.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+
+from unibody.mocap.trc import read_trc
+from unibody.motion import MAX_DISTANCE
+
+VALID = (
+    "PathFileType\t4\t(X/Y/Z)\tt.trc\n"
+    "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames\n"
+    "100.0\t100.0\t3\t2\tmm\t100.0\t1\t3\n"
+    "Frame#\tTime\tRASI\t\t\tSubj:LASI\t\t\n"
+    "\t\tX1\tY1\tZ1\tX2\tY2\tZ2\n"
+    "\n"
+    "1\t0.00\t100.5\t900.0\t-20.0\t-100.5\t900.0\t-20.0\n"
+    "2\t0.01\t101.5\t901.0\t-21.0\t\t\t\n"
+    "3\t0.02\t102.5\t902.0\t-22.0\n"
+).encode("ascii")
+
+TOKENS = [b"\t", b"\n", b"\r\n", b"", b"mm", b"m", b"cm", b"km", b"nan", b"NaN", b"inf", b"-inf", b"1e999", b"1e308",
+          b"-1e12", b"0", b"-0", b"3", b"2", b"1e-320", b"100.0", b"Frame#", b"Time", b"DataRate", b"NumFrames",
+          b"NumMarkers", b"Units", b"PathFileType", b"Subj:", b"\xe9", b"\xff\xfe", b"\x00", b"x", b" ", b":",
+          b"1_0"]  # fmt: skip
+
+
+def _check(data: bytes) -> None:
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "fuzz.trc"
+        path.write_bytes(data)
+        try:
+            seq = read_trc(path)
+        except ValueError as e:
+            assert str(path) in str(e), f"the error does not name the file: {e}"
+            assert "\n" not in str(e)
+            return
+    t, m, three = seq.points.shape
+    assert t >= 1 and m >= 1 and three == 3 and len(seq.labels) == len(seq.subjects) == m
+    assert all(seq.labels), seq.labels
+    finite = seq.points[~np.isnan(seq.points)]
+    assert np.isfinite(finite).all() and (np.abs(finite) <= MAX_DISTANCE).all()
+    assert np.isfinite(seq.rate) and seq.rate > 0
+
+
+@given(st.binary(max_size=400))
+def test_random_bytes(data):
+    _check(b"PathFileType" + data)
+
+
+@given(st.data())
+def test_mutated_valid_file(data):
+    buf = bytearray(VALID)
+    for _ in range(data.draw(st.integers(1, 6), label="edits")):
+        kind = data.draw(st.sampled_from(["flip", "truncate", "insert", "delete", "replace_field", "duplicate_line"]))
+        pos = data.draw(st.integers(0, max(len(buf) - 1, 0)))
+        if kind == "flip" and buf:
+            buf[pos] = data.draw(st.integers(0, 255))
+        elif kind == "truncate":
+            del buf[pos:]
+        elif kind == "insert":
+            buf[pos:pos] = data.draw(st.sampled_from(TOKENS))
+        elif kind == "delete":
+            del buf[pos : pos + data.draw(st.integers(1, 8))]
+        elif kind == "replace_field":
+            fields = bytes(buf).split(b"\t")
+            i = data.draw(st.integers(0, len(fields) - 1))
+            fields[i] = data.draw(st.sampled_from(TOKENS))
+            buf = bytearray(b"\t".join(fields))
+        else:
+            lines = bytes(buf).split(b"\n")
+            i = data.draw(st.integers(0, len(lines) - 1))
+            lines.insert(i, lines[i])
+            buf = bytearray(b"\n".join(lines))
+    _check(bytes(buf))
