@@ -53,6 +53,36 @@ def test_recovers_pca_coefficients(pca32):
     assert float((fit.params - truth).abs().amax()) < 0.02
 
 
+def test_recovers_every_component_of_the_native_pca():
+    # The shipped space (128 components; limits |c_k| <= 10 sigma_0 / sigma_k, up to 38,490) failed
+    # on its own bodies: the first L-BFGS step made an 18.8 m body and the layer refused it.
+    layer = BodyLayer.from_pca().double()
+    truth = 0.8 * torch.randn(2, 128, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    fit = fit_identity(layer, _reposed(layer, truth), lbfgs_steps=100)
+    assert float(fit.per_vertex_error.amax()) < 1e-5 and float((fit.params - truth)[:, :32].abs().amax()) < 1e-3
+    bounded = _Bounded(param_limits(layer.identity), truth)
+    z = bounded.inverse(truth)
+    assert torch.allclose(bounded(z), truth, atol=1e-9)
+    step = bounded(z + 1.0) - truth  # a unit step moves the leading coefficient by <= 1 sigma
+    assert 0.5 < float(step[0, 0]) <= 1.0
+
+
+def test_a_trial_past_the_layers_extent_is_backtracked():
+    from unibody.fitting.shape_fit import _Objective, _trial
+
+    layer = BodyLayer.from_pca(num_components=10).double()
+    bounded = _Bounded(param_limits(layer.identity), layer.skeleton.bind_rot)
+    targets = _reposed(layer, layer.identity.default_params(2))
+    objective = _Objective(layer, bounded, targets)
+    z = bounded.inverse(torch.tensor([[0.5] + [0.0] * 9, [9.99] + [0.0] * 9], dtype=torch.float64))
+    z[1, 1:] = 50.0  # a body far past 10 m: the layer refuses it, the trial is +inf
+    with pytest.raises(ValueError, match="bounding-box diagonal"):
+        objective(z, torch.arange(2))
+    f, g = _trial(objective, z, torch.arange(2))
+    assert math.isfinite(float(f[0])) and f[1] == math.inf and bool(g[1].eq(0).all())
+    assert torch.equal(f[:1], objective(z[:1], torch.arange(1))[0])
+
+
 def test_parameters_stay_in_their_limits(anny32):
     # A giant (the tallest Anny scaled by 1.2 about the Hips): the fit pushes height to its
     # limit, and Anny (which rejects phenotypes outside [0, 1]) never sees an invalid value.

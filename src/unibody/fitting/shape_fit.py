@@ -41,6 +41,9 @@ __all__ = ["IdentityFit", "fit_identity", "param_limits"]
 _INSIDE = 1e-4
 _HISTORY = 30  # L-BFGS memory; measured on Anny + 256 local changes: 0.72 mm mean after 100 iterations vs 1.1 with 10
 _MAX_TRIALS = 12  # line-search trials per L-BFGS iteration (t shrinks 2 to 10 times per trial)
+SPAN_EXPONENT = 0.5
+"""How the parameters' steps grow with their spans (:class:`_Bounded`): 0.5 fits every native-PCA
+body of ``benchmarks/identity_fit.py``; 0.85 and 1 stop some in other minima, 0 converges slowly."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,7 +85,18 @@ def param_limits(identity: IdentityBackend) -> torch.Tensor:
 
 
 class _Bounded:
-    """The map z -> params that keeps each parameter within its limits, and its inverse."""
+    """The map z -> params that keeps each parameter within its limits, and its inverse.
+
+    A parameter with both limits is ``lo + (hi - lo) sigmoid(g z)``, its slope at mid-range
+    ``s = (hi - lo) g / 4``. The narrowest span gets ``s = min(1, span / 4)`` (a unit step of z
+    moves a [0, 1] phenotype by 0.25, the native PCA's leading coefficient by one sigma) and the
+    slopes grow as ``span ** SPAN_EXPONENT`` from there. For the native PCA (``|c_k| <= 10
+    sigma_0 / sigma_k``) the exponent picks how far a unit step moves the vertices of component
+    k: 0, alike in sigma (the last components barely move the mesh: slow); 1, alike in
+    millimetres (fast, but it stops in other minima). ``benchmarks/identity_fit.py`` compares them.
+    The slopes of before (the span's own, ``s = span / 4``) sent the first L-BFGS step of the
+    native PCA to a 19 m body, which the layer refuses.
+    """
 
     def __init__(self, limits: torch.Tensor, ref: torch.Tensor) -> None:
         lo, hi = limits[:, 0], limits[:, 1]
@@ -95,9 +109,13 @@ class _Bounded:
         self.lo = torch.where(lo.isfinite(), lo, 0.0).to(ref)
         self.hi = torch.where(hi.isfinite(), hi, 0.0).to(ref)
         self.lo_raw, self.hi_raw = lo.to(ref), hi.to(ref)
+        span = torch.where(self.both, self.hi - self.lo, 1.0)
+        narrow = float(span[self.both].min()) if bool(self.both.any()) else 1.0
+        slope = min(1.0, narrow / 4) * (span / narrow) ** SPAN_EXPONENT
+        self.gain = torch.where(self.both, 4 * slope / span, 1.0)
 
     def __call__(self, z: torch.Tensor) -> torch.Tensor:
-        sig = self.lo + (self.hi - self.lo) * torch.sigmoid(z)
+        sig = self.lo + (self.hi - self.lo) * torch.sigmoid(self.gain * z)
         out = torch.where(self.both, sig, z)
         out = torch.where(self.low_only, self.lo + F.softplus(z), out)
         return torch.where(self.high_only, self.hi - F.softplus(z), out)
@@ -116,7 +134,7 @@ class _Bounded:
         p = torch.where(self.lo_raw.isfinite(), torch.maximum(params, self.lo + eps), params)
         p = torch.where(self.hi_raw.isfinite(), torch.minimum(p, self.hi - eps), p)
         u = ((p - self.lo) / span).clamp(_INSIDE, 1.0 - _INSIDE)
-        z = torch.where(self.both, torch.logit(u), p)
+        z = torch.where(self.both, torch.logit(u) / self.gain, p)
         softplus_inv = lambda y: y + torch.log(-torch.expm1(-y))  # noqa: E731  (y > 0)
         z = torch.where(self.low_only, softplus_inv((p - self.lo).clamp_min(eps)), z)
         return torch.where(self.high_only, softplus_inv((self.hi - p).clamp_min(eps)), z)
@@ -291,7 +309,7 @@ def _lbfgs(
             idx = torch.nonzero(pending).flatten()
             if idx.numel() == 0:
                 break
-            f_try, g_try = objective(z[idx] + t[idx, None] * d[idx], idx)
+            f_try, g_try = _trial(objective, z[idx] + t[idx, None] * d[idx], idx)
             ti, fi, gi = t[idx], f[idx], gtd[idx]
             ok = f_try <= fi + 1e-4 * ti * gi  # Armijo
             f_new[idx[ok]], g_new[idx[ok]] = f_try[ok], g_try[ok]
@@ -325,6 +343,18 @@ def _lbfgs(
         if stop:
             break
     return z, done
+
+
+def _trial(objective: _Objective, z: torch.Tensor, items: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The objective at a line-search trial; +inf (backtrack) for an item whose body the layer
+    refuses (a rest mesh past 10 m: the backend's limits allow larger bodies than the layer)."""
+    try:
+        return objective(z, items)
+    except ValueError:
+        if len(items) == 1:
+            return z.new_full((1,), math.inf), torch.zeros_like(z)
+        parts = [_trial(objective, z[i : i + 1], items[i : i + 1]) for i in range(len(items))]
+        return torch.cat([f for f, _ in parts]), torch.cat([g for _, g in parts])
 
 
 class _Reporter:
