@@ -184,7 +184,7 @@ def test_errors_are_one_line_with_their_exit_code(tmp_path, capsys):
         (("invert", motion, "--out", out, "--batch", "-3"), 2, ["--batch"]),
         (("invert", motion, "--out", out, "--preset", "best"), 2, ["--preset: expected one of"]),
         (("invert", motion, "--out", out), 3, ["m.npz: missing field(s) topology, vertices"]),
-        (("mocap", "label", motion, "--out", tmp_path / "l.txt"), 4, ["expected a .c3d or .npz file"]),
+        (("mocap", "label", motion, "--out", tmp_path / "l.txt"), 4, ["expected a .c3d or .npz or .trc file"]),
         (("mocap", "solve", motion, "--out", tmp_path / "x.c3d"), 4, ["expected a .npz file"]),
         (("demo", "--backends", "smpl2"), 2, ["--backends: unknown backend 'smpl2'"]),
     ]

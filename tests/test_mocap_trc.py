@@ -10,8 +10,8 @@ import pytest
 
 from smpl_format import evaldata_dir
 from unibody.cli import main
-from unibody.mocap.c3d import read_markers
-from unibody.mocap.trc import read_trc
+from unibody.mocap.c3d import MarkerSequence, read_markers
+from unibody.mocap.trc import read_trc, write_trc
 
 REAL = sorted((evaldata_dir() / "trc").glob("*.trc"))
 
@@ -61,6 +61,27 @@ def test_variations_exporters_write(tmp_path):
     assert vis.tolist() == [[True, False, True], [True, False, False], [False, True, False]]  # empty, cut short, NaN
 
 
+def test_written_files_read_back_and_parse_as_opensim_writes_them(tmp_path):
+    g = np.random.default_rng(1)
+    points = g.normal(0, 0.8, (7, 4, 3))
+    points[2, 1] = np.nan
+    points[6, 3] = np.nan  # a trailing missing marker: empty cells at the end of the row
+    seq = MarkerSequence(points, ("C7", "LFHD", "*3", "RFHD"), ("Derrick", "", "", "Viktor"), 120.0)
+    path = tmp_path / "out.trc"
+    write_trc(path, seq)
+    back = read_trc(path)
+    assert back.labels == seq.labels and back.subjects == seq.subjects and back.rate == 120.0
+    assert np.allclose(back.points, points, atol=1e-9, equal_nan=True)  # 6 decimals of a millimetre
+    ref = np.genfromtxt(path, delimiter="\t", skip_header=5)  # numpy's parse: frame, time, 12 coordinates
+    assert ref.shape == (7, 14) and np.allclose(ref[:, 1], np.arange(7) / 120.0, atol=1e-6)
+    assert np.allclose(ref[:, 2:].reshape(7, 4, 3) / 1000, points, atol=1e-9, equal_nan=True)
+    lines = path.read_text().splitlines()
+    assert lines[0] == "PathFileType\t4\t(X/Y/Z)\tout.trc" and lines[2].split("\t")[2:5] == ["7", "4", "mm"]
+    with pytest.raises(ValueError, match="labels: a TRC label cannot hold a tab or a line break, got .a.tb."):
+        write_trc(tmp_path / "x.trc", MarkerSequence(points[:, :1], ("a\tb",), ("",), 120.0))
+    assert not (tmp_path / "x.trc").exists()
+
+
 @pytest.mark.parametrize(
     ("change", "message"),
     [
@@ -98,6 +119,9 @@ def test_commands_read_trc(tmp_path, capsys):
     assert main(["mocap", "label", str(path), "--up", "y", "--out", str(tmp_path / "l.npz")]) == 0
     labelled = read_markers(tmp_path / "l.npz")
     assert labelled.num_frames == 6 and math.isclose(labelled.rate, 60.0)
+    assert main(["mocap", "label", str(path), "--up", "y", "--out", str(tmp_path / "l.trc")]) == 0
+    same = read_markers(tmp_path / "l.trc")
+    assert same.labels == labelled.labels and np.allclose(same.points, labelled.points, atol=1e-6, equal_nan=True)
     capsys.readouterr()
     bad = tmp_path / "bad.trc"
     bad.write_text("PathFileType\t4\n")

@@ -83,3 +83,44 @@ def test_mutated_valid_file(data):
             lines.insert(i, lines[i])
             buf = bytearray(b"\n".join(lines))
     _check(bytes(buf))
+
+
+_name = st.text(st.characters(blacklist_categories=("Cs", "Zs"), blacklist_characters=":"), min_size=1)
+
+
+@given(
+    st.integers(1, 5).flatmap(
+        lambda t: st.integers(1, 4).flatmap(
+            lambda m: st.tuples(
+                st.lists(
+                    st.one_of(st.floats(-1e4, 1e4), st.just(float("nan"))), min_size=3 * t * m, max_size=3 * t * m
+                ),
+                st.lists(_name, min_size=m, max_size=m),
+                st.lists(st.one_of(st.just(""), _name), min_size=m, max_size=m),
+                st.just(t),
+            )
+        )
+    ),
+    st.floats(0.01, 1e4),
+)
+def test_written_files_read_back(drawn, rate):
+    from unibody.mocap.c3d import MarkerSequence
+    from unibody.mocap.trc import write_trc
+
+    values, labels, subjects, t = drawn
+    seq = MarkerSequence(np.asarray(values).reshape(t, len(labels), 3), tuple(labels), tuple(subjects), rate)
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "w.trc"
+        try:
+            write_trc(path, seq)
+        except ValueError as e:  # a label holding a separator, or padded: refused, nothing written
+            assert str(e).startswith("labels: a TRC label ") and not path.exists()
+            parts = seq.labels + seq.subjects
+            assert any("\t" in x or len(f"{x}.".splitlines()) > 1 or x != x.strip() for x in parts) or not all(
+                x.strip() for x in seq.labels
+            )
+            return
+        back = read_trc(path)
+    assert back.labels == seq.labels and back.subjects == seq.subjects
+    assert abs(back.rate - rate) <= 1e-11 * rate
+    assert np.allclose(back.points, seq.points, rtol=0, atol=1e-9, equal_nan=True)

@@ -60,10 +60,10 @@ def _parser() -> argparse.ArgumentParser:
     mocap = sub.add_parser("mocap", parents=[common], help="optical mocap: label raw C3D point clouds, solve the body")
     msub = mocap.add_subparsers(dest="mocap_command", required=True)
     lab = msub.add_parser(
-        "label", parents=[writes], help="raw markers (.c3d/.trc/.npz) -> labelled markers (.c3d/.npz)"
+        "label", parents=[writes], help="raw markers (.c3d/.trc/.npz) -> labelled markers (.c3d/.trc/.npz)"
     )
     lab.add_argument("markers", type=Path)
-    lab.add_argument("--out", type=Path, required=True, help="labelled markers to write (.c3d or .npz)")
+    lab.add_argument("--out", type=Path, required=True, help="labelled markers to write (.c3d, .trc or .npz)")
     lab.add_argument("--model", default="cmu41", help="shipped labeler (cmu41 | cmu41_large | pig39) or a weights file")
     lab.add_argument("--up", default="z", choices=("z", "y"), help="vertical axis of the file")
     lab.add_argument(

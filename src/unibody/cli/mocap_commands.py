@@ -27,12 +27,13 @@ def run_mocap_label(
     from ..mocap.c3d import read_markers, write_c3d, write_npz
     from ..mocap.layout import MarkerLayout, available_layouts
     from ..mocap.pipeline import label_sequence, load_labeler
+    from ..mocap.trc import write_trc
 
     try:
         dev = check_device(device, "--device")
     except ValueError as err:
         raise UsageError(str(err)) from None
-    out = check_output(out, inputs=[src], suffixes=[".c3d", ".npz"], force=force)
+    out = check_output(out, inputs=[src], suffixes=[".c3d", ".npz", ".trc"], force=force)
     seq = _read(src, read_markers)
     labeler = load_labeler(model).to(dev).set_autocast(torch.bfloat16 if bf16 else None)
     layout = None
@@ -61,7 +62,7 @@ def run_mocap_label(
         report = labelled.report
         if report.frames and len(report.unlabelled) == report.frames:
             raise InputError(f"{src}: no frame could be labelled: {report.summary()}")
-        (write_c3d if out.suffix.lower() == ".c3d" else write_npz)(out, labelled)
+        {".c3d": write_c3d, ".trc": write_trc}.get(out.suffix.lower(), write_npz)(out, labelled)
     found = int((seq.visible & (labelled.point_labels < labeler.num_labels)).sum())  # copies: their original's label
     total = int(seq.visible.sum())
     merged = ""

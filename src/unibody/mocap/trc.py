@@ -31,7 +31,7 @@ import numpy as np
 from ..motion import MAX_DISTANCE
 from .c3d import MarkerSequence, _split_label
 
-__all__ = ["read_trc"]
+__all__ = ["read_trc", "write_trc"]
 
 _UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
 MAX_TRC_BYTES = 2**30
@@ -89,6 +89,45 @@ def read_trc(path: str | Path) -> MarkerSequence:
     if not all(labels):
         raise ValueError(f"{path}: line 4: marker {names[labels.index('')]!r} has no name after its subject")
     return MarkerSequence(points, labels, subjects, rate)
+
+
+def write_trc(path: str | Path, seq: MarkerSequence) -> None:
+    """Write ``seq`` as a TRC file in millimetres, as OpenSim writes them (missing samples: empty cells).
+
+    Labels get a ``Subject:`` prefix where a subject is set, so :func:`read_trc` gives back the
+    same labels, subjects and rate; coordinates keep 6 decimals of a millimetre. Written
+    atomically at exactly ``path`` (:func:`unibody.io.atomic.atomic_path`).
+
+    Raises:
+        ValueError: a label holding a tab or a line break (the format's separators), or one that is
+            empty or padded with spaces (readers strip them).
+    """
+    from ..io.atomic import atomic_path
+
+    names = seq.qualified_labels
+    for name, label, subject in zip(names, seq.labels, seq.subjects, strict=True):
+        if "\t" in name or len(f"{name}.".splitlines()) > 1:  # splitlines also breaks at \v, \x85, \u2028, ...
+            raise ValueError(f"labels: a TRC label cannot hold a tab or a line break, got {name!r}")
+        if not label.strip() or label != label.strip() or subject != subject.strip():
+            raise ValueError(
+                f"labels: a TRC label is read back stripped, so it cannot be empty or padded, got {name!r}"
+            )
+    t, m = seq.num_frames, seq.num_markers
+    rate = f"{seq.rate:.12g}"
+    lines = [
+        f"PathFileType\t4\t(X/Y/Z)\t{Path(path).name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
+        f"{rate}\t{rate}\t{t}\t{m}\tmm\t{rate}\t1\t{t}",
+        "Frame#\tTime\t" + "".join(f"{x}\t\t\t" for x in names),
+        "\t\t" + "\t".join(f"{a}{i + 1}" for i in range(m) for a in "XYZ"),
+        "",
+    ]
+    mm = seq.points * 1e3
+    for k in range(t):
+        cells = ["" if math.isnan(x) else f"{x:.6f}" for x in mm[k].ravel()]
+        lines.append(f"{k + 1}\t{k / seq.rate:.6f}\t" + "\t".join(cells))
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
 def _header(path: Path, names: str, values: str) -> dict[str, str]:
