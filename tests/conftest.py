@@ -181,6 +181,35 @@ def change_fields(data, fields: dict, extra: list[str], replacement) -> dict:
     return fields
 
 
+def mutate_text(data, text: bytes, tokens: list[bytes], separator: bytes | None = None) -> bytes:
+    """``text`` after 1-6 edits drawn by hypothesis's ``st.data()``: a byte flipped, the end cut,
+    a token inserted, a few bytes deleted, a line doubled, or (with ``separator``) one field
+    between separators replaced by a token."""
+    buf = bytearray(text)
+    kinds = ["flip", "truncate", "insert", "delete", "duplicate_line"] + (["replace_field"] if separator else [])
+    for _ in range(data.draw(st.integers(1, 6), label="edits")):
+        kind = data.draw(st.sampled_from(kinds))
+        pos = data.draw(st.integers(0, max(len(buf) - 1, 0)))
+        if kind == "flip" and buf:
+            buf[pos] = data.draw(st.integers(0, 255))
+        elif kind == "truncate":
+            del buf[pos:]
+        elif kind == "insert":
+            buf[pos:pos] = data.draw(st.sampled_from(tokens))
+        elif kind == "delete":
+            del buf[pos : pos + data.draw(st.integers(1, 8))]
+        elif kind == "replace_field":
+            fields = bytes(buf).split(separator)
+            fields[data.draw(st.integers(0, len(fields) - 1))] = data.draw(st.sampled_from(tokens))
+            buf = bytearray(separator.join(fields))
+        elif kind == "duplicate_line":
+            lines = bytes(buf).split(b"\n")
+            i = data.draw(st.integers(0, len(lines) - 1))
+            lines.insert(i, lines[i])
+            buf = bytearray(b"\n".join(lines))
+    return bytes(buf)
+
+
 def json_paths(x, at: tuple = (), width: int = 8) -> list[tuple]:
     """Every path into a JSON tree: dict keys and list indices (the first ``width`` of each)."""
     out = [at]

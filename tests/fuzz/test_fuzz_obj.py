@@ -13,6 +13,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
+from conftest import mutate_text
 from unibody.io.obj import read_obj
 
 VALID = b"""# cube
@@ -62,24 +63,7 @@ def test_random_bytes(data):
 
 @given(st.data())
 def test_mutated_valid_file(data):
-    buf = bytearray(VALID)
-    for _ in range(data.draw(st.integers(1, 6), label="edits")):
-        kind = data.draw(st.sampled_from(["flip", "truncate", "insert", "delete", "duplicate_line"]))
-        pos = data.draw(st.integers(0, max(len(buf) - 1, 0)))
-        if kind == "flip" and buf:
-            buf[pos] = data.draw(st.integers(0, 255))
-        elif kind == "truncate":
-            del buf[pos:]
-        elif kind == "insert":
-            buf[pos:pos] = data.draw(st.sampled_from(TOKENS))
-        elif kind == "delete":
-            del buf[pos : pos + data.draw(st.integers(1, 8))]
-        else:
-            lines = bytes(buf).split(b"\n")
-            i = data.draw(st.integers(0, len(lines) - 1))
-            lines.insert(i, lines[i])
-            buf = bytearray(b"\n".join(lines))
-    _check(bytes(buf))
+    _check(mutate_text(data, VALID, TOKENS))
 
 
 _line = st.lists(st.sampled_from(TOKENS), min_size=0, max_size=7).map(b" ".join)

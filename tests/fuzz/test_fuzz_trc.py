@@ -14,6 +14,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
+from conftest import mutate_text
 from unibody.mocap.trc import read_trc
 from unibody.motion import MAX_DISTANCE
 
@@ -60,29 +61,7 @@ def test_random_bytes(data):
 
 @given(st.data())
 def test_mutated_valid_file(data):
-    buf = bytearray(VALID)
-    for _ in range(data.draw(st.integers(1, 6), label="edits")):
-        kind = data.draw(st.sampled_from(["flip", "truncate", "insert", "delete", "replace_field", "duplicate_line"]))
-        pos = data.draw(st.integers(0, max(len(buf) - 1, 0)))
-        if kind == "flip" and buf:
-            buf[pos] = data.draw(st.integers(0, 255))
-        elif kind == "truncate":
-            del buf[pos:]
-        elif kind == "insert":
-            buf[pos:pos] = data.draw(st.sampled_from(TOKENS))
-        elif kind == "delete":
-            del buf[pos : pos + data.draw(st.integers(1, 8))]
-        elif kind == "replace_field":
-            fields = bytes(buf).split(b"\t")
-            i = data.draw(st.integers(0, len(fields) - 1))
-            fields[i] = data.draw(st.sampled_from(TOKENS))
-            buf = bytearray(b"\t".join(fields))
-        else:
-            lines = bytes(buf).split(b"\n")
-            i = data.draw(st.integers(0, len(lines) - 1))
-            lines.insert(i, lines[i])
-            buf = bytearray(b"\n".join(lines))
-    _check(bytes(buf))
+    _check(mutate_text(data, VALID, TOKENS, separator=b"\t"))
 
 
 _name = st.text(st.characters(blacklist_categories=("Cs", "Zs"), blacklist_characters=":"), min_size=1)
