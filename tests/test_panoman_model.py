@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import torch
 
 from unibody import BodyLayer
@@ -160,3 +161,69 @@ def test_shipped_model_components_are_sparse_and_local():
         sizes = d.support_sizes()
         assert int(sizes.max()) < 0.5 * e, (d.quantity, d.subset, int(sizes.max()))
     assert model.beta_net is not None and model.joint_regressor is not None
+
+
+def test_hostile_arguments_are_named_before_any_work(layer):
+    # Each used to fail deep inside scipy or torch (an index error, a broadcast, a reshape), to
+    # blame "vertices" or "identity params", or to run: ids 1.5 truncated, iterations -1.
+    from unibody.panoman import fit, fit_body, regressor_matrix
+
+    model = PanoMan.load()
+    v = model.topology.vertex_count
+    ref, alpha = torch.zeros(v, 3, dtype=F64), torch.zeros(10, dtype=F64)
+    ids, pts = np.arange(0, v, 900), np.zeros((21, 3))
+    cases = [
+        (lambda: fit(model, alpha[:5], Handles(ids, pts), reference=ref), "alpha: expected shape (10), got (5,)"),
+        (lambda: fit(model, alpha, Handles(ids, pts), reference=ref[:100]), "reference: expected shape (18056, 3)"),
+        (lambda: fit(model, alpha * np.nan, Handles(ids, pts), reference=ref), "alpha: expected finite values"),
+        (lambda: fit(model, alpha, Handles(ids, pts), reference=ref, pose=torch.zeros(10, 3)), "pose: expected shape"),
+        (lambda: fit(model, alpha, Handles(np.array([v]), pts[:1]), reference=ref), f"got {v}"),
+        (lambda: fit(model, alpha, Handles(np.array([-1]), pts[:1]), reference=ref), "in [0, 18056), got -1"),
+        (lambda: Handles(np.array([1.5]), pts[:1]), "handles.vertex_ids: expected (H,) integer vertex ids"),
+        (lambda: Handles(ids, pts[:3]), "handles.vertex_targets: expected (21, 3) numbers, got (3, 3)"),
+        (lambda: Handles(ids, pts * np.nan), "handles.vertex_targets: expected finite values, got 63 NaN/inf"),
+        (lambda: Handles(ids, None), "handles: give vertex_ids and vertex_targets together"),
+        (lambda: ShellConfig(iterations=0), "config.iterations: expected an int >= 1, got 0"),
+        (lambda: ShellConfig(handles=float("nan")), "config.handles: expected a finite number >= 0, got nan"),
+        (lambda: ShellConfig(damping=-1.0), "config.damping: expected a finite number >= 0, got -1.0"),
+    ]
+    for call, message in cases:
+        with pytest.raises(ValueError) as err:
+            call()
+        assert message in str(err.value), (message, str(err.value))
+    assert ShellConfig(iterations=np.int64(3), bending=np.float32(2)).iterations == 3  # numpy numbers are numbers
+    regs = sp.random(3, 100, density=0.1, format="csr")
+    with pytest.raises(ValueError, match="handles.regressor: expected 18056 columns, got 100"):
+        Handles(regressor=regs, regressor_targets=np.zeros((3, 3))).matrix(v)
+    reg = regressor_matrix(*model.joint_regressor, v)
+    joints, t_ids = torch.zeros(1, 77, 3, dtype=F64), torch.tensor([0, 900])
+    body = [
+        (
+            lambda: fit_body(layer, t_ids, torch.zeros(1, 3, 3, dtype=F64), reg, joints),
+            "vertex_targets: expected shape",
+        ),
+        (
+            lambda: fit_body(layer, t_ids + v, torch.zeros(1, 2, 3, dtype=F64), reg, joints),
+            "vertex_ids: expected canonical",
+        ),
+        (
+            lambda: fit_body(layer, t_ids, torch.zeros(1, 2, 3, dtype=F64), reg, joints * np.nan),
+            "joint_targets: expected finite",
+        ),
+        (
+            lambda: fit_body(layer, t_ids, torch.zeros(1, 2, 3, dtype=F64), reg, joints[:, :10]),
+            "joint_targets: expected shape",
+        ),
+        (
+            lambda: fit_body(layer, t_ids * 1.0, torch.zeros(1, 2, 3, dtype=F64), reg, joints),
+            "vertex_ids: expected integer",
+        ),
+        (
+            lambda: fit_body(layer, t_ids, torch.zeros(1, 2, 3), reg, joints),
+            "vertex_targets: is float32 on cpu but the layer",
+        ),
+    ]
+    for call, message in body:
+        with pytest.raises((ValueError, TypeError)) as err:
+            call()
+        assert message in str(err.value), (message, str(err.value))

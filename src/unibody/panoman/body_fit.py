@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .._checks import check_grad_mode
+from .._checks import check_finite, check_grad_mode, check_like, check_shape
 from ..body import BodyLayer
 from ..geometry.procrustes import kabsch
 from ..geometry.rotations import matrix_to_axis_angle, shortest_arc
@@ -53,7 +53,9 @@ def regressor_matrix(ids: torch.Tensor, weights: torch.Tensor, num_vertices: int
     """Sparse (R, V) float64 tensor of a regressor given as rows of vertex ids (R, k) and weights (R, k)."""
     r, k = ids.shape
     idx = torch.stack([torch.arange(r, device=ids.device).repeat_interleave(k), ids.reshape(-1)])
-    return torch.sparse_coo_tensor(idx, weights.reshape(-1).double(), (r, num_vertices)).coalesce()
+    # Checked (an id outside [0, V) raises here, not a crash later); 77 rows cost nothing to check.
+    coo = torch.sparse_coo_tensor(idx, weights.reshape(-1).double(), (r, num_vertices), check_invariants=True)
+    return coo.coalesce()
 
 
 def sparse_joint_regressor(
@@ -159,6 +161,24 @@ def _regress(regressor: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
 
 
 @torch.enable_grad()  # it descends a gradient whatever its caller (commands run under no_grad)
+def _check_args(layer, vertex_ids, vertex_targets, regressor, joint_targets) -> None:  # noqa: ANN001
+    """TypeError / ValueError naming the argument (:func:`fit_body`'s)."""
+    if not isinstance(layer, BodyLayer) or layer.identity is None:
+        raise ValueError("layer: expected a BodyLayer with an identity backend (e.g. BodyLayer.from_pca())")
+    sizes = {"V": layer.num_vertices, "J": layer.num_joints - 1}
+    check_shape(vertex_ids, "H", name="vertex_ids", sizes=sizes)
+    if vertex_ids.is_floating_point() or vertex_ids.is_complex() or vertex_ids.dtype == torch.bool:
+        raise TypeError(f"vertex_ids: expected integer vertex ids, got {str(vertex_ids.dtype).removeprefix('torch.')}")
+    if len(vertex_ids) and not (0 <= int(vertex_ids.min()) and int(vertex_ids.max()) < sizes["V"]):
+        bad = vertex_ids[(vertex_ids < 0) | (vertex_ids >= sizes["V"])][0]
+        raise ValueError(f"vertex_ids: expected canonical vertex ids in [0, {sizes['V']}), got {int(bad)}")
+    check_shape(regressor, "J V", name="regressor", sizes=sizes)
+    for name, x, spec in (("vertex_targets", vertex_targets, "B H 3"), ("joint_targets", joint_targets, "B J 3")):
+        check_shape(x, spec, name=name, sizes=sizes)
+        check_like(x, layer.tpose_orient, name=name)
+        check_finite(x, name)
+
+
 def fit_body(
     layer: BodyLayer,
     vertex_ids: torch.Tensor,
@@ -184,6 +204,7 @@ def fit_body(
         pose_prior: weight of |pose|^2 in stage 2 (per joint, radians^2, against m^2 residuals).
     """
     check_grad_mode("fit_body")
+    _check_args(layer, vertex_ids, vertex_targets, regressor, joint_targets)
     joint_targets = joint_targets.detach()
     # The constraint indices and the regressor are constants: take them to the targets' device.
     dev = joint_targets.device

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .._checks import check_finite, check_shape, check_tensor
 from .model import PanoMan
 from .shell import Handles, ShellConfig, ShellResult, fit_shell
 
@@ -48,6 +49,14 @@ def fit(
     and returns numpy arrays.
     """
     config = ShellConfig() if config is None else config
+    for name, x in (("alpha", alpha), ("reference", reference), ("pose", pose)):
+        if x is not None:
+            check_tensor(x, name)
+            check_finite(x, name)
+    check_shape(alpha.reshape(-1), str(model.shape_space.num_params), name="alpha")
+    check_shape(reference, f"{model.topology.vertex_count} 3", name="reference")
+    if pose is not None:
+        check_shape(pose, "77 3", "1 77 3", name="pose")
     # The shell fit is numpy/scipy and the model lives on the CPU: inputs may come from any
     # device (e.g. a fit_body on CUDA) and with gradients; they are copied to the CPU here.
     alpha = alpha.detach().reshape(-1).to("cpu", torch.float64)

@@ -26,6 +26,7 @@ Everything here is float64 numpy/scipy on one mesh.
 
 from __future__ import annotations
 
+import numbers
 import time
 from dataclasses import dataclass, field
 
@@ -65,6 +66,16 @@ class ShellConfig:
     damping: float = 1e-6
     tolerance: float = 1e-5
 
+    def __post_init__(self) -> None:
+        for name in ("bending", "handles", "ridge", "parameters", "damping", "tolerance"):
+            x = getattr(self, name)
+            if isinstance(x, bool) or not isinstance(x, numbers.Real) or not (0 <= x < float("inf")):
+                raise ValueError(f"config.{name}: expected a finite number >= 0, got {x!r}")
+        for name in ("iterations", "refactor_every"):
+            x = getattr(self, name)
+            if isinstance(x, bool) or not isinstance(x, numbers.Integral) or x < 1:
+                raise ValueError(f"config.{name}: expected an int >= 1, got {x!r}")
+
 
 @dataclass(frozen=True)
 class Handles:
@@ -80,8 +91,37 @@ class Handles:
     regressor: sp.spmatrix | None = None
     regressor_targets: np.ndarray | None = None
 
+    def __post_init__(self) -> None:
+        if (self.vertex_ids is None) != (self.vertex_targets is None):
+            raise ValueError("handles: give vertex_ids and vertex_targets together")
+        if (self.regressor is None) != (self.regressor_targets is None):
+            raise ValueError("handles: give regressor and regressor_targets together")
+        if self.vertex_ids is not None:
+            ids = _array(self.vertex_ids)
+            if ids.ndim != 1 or (ids.size and ids.dtype.kind not in "iu"):
+                raise ValueError(f"handles.vertex_ids: expected (H,) integer vertex ids, got {ids.shape} {ids.dtype}")
+            object.__setattr__(self, "vertex_ids", ids.astype(np.int64))
+            object.__setattr__(self, "vertex_targets", _points(self.vertex_targets, len(ids), "vertex_targets"))
+        if self.regressor is not None:
+            shape = getattr(self.regressor, "shape", ())
+            if len(shape) != 2:
+                raise ValueError(f"handles.regressor: expected an (R, V) matrix, got shape {shape}")
+            object.__setattr__(
+                self, "regressor_targets", _points(self.regressor_targets, shape[0], "regressor_targets")
+            )
+
     def matrix(self, num_vertices: int) -> tuple[sp.csr_matrix, np.ndarray]:
-        """(C (H+R, V), targets (H+R, 3)): the handles as rows of one linear map of the vertices."""
+        """(C (H+R, V), targets (H+R, 3)): the handles as rows of one linear map of the vertices.
+
+        Raises:
+            ValueError: a vertex id outside ``[0, num_vertices)`` or a regressor of another width.
+        """
+        ids = self.vertex_ids
+        if ids is not None and len(ids) and not (0 <= ids.min() and ids.max() < num_vertices):
+            bad = ids[(ids < 0) | (ids >= num_vertices)][0]
+            raise ValueError(f"handles.vertex_ids: expected vertex ids in [0, {num_vertices}), got {bad}")
+        if self.regressor is not None and self.regressor.shape[1] != num_vertices:
+            raise ValueError(f"handles.regressor: expected {num_vertices} columns, got {self.regressor.shape[1]}")
         rows, targets = [], []
         if self.vertex_ids is not None and len(self.vertex_ids):
             ids = np.asarray(self.vertex_ids, dtype=np.int64)
@@ -93,6 +133,21 @@ class Handles:
         if not rows:
             return sp.csr_matrix((0, num_vertices)), np.zeros((0, 3))
         return sp.vstack(rows).tocsr(), np.concatenate(targets)
+
+
+def _array(x: object) -> np.ndarray:
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def _points(x: object, count: int, name: str) -> np.ndarray:
+    """``x`` as a finite (count, 3) float64 array, else ValueError naming ``handles.<name>``."""
+    a = _array(x)
+    if a.shape != (count, 3) or a.dtype.kind not in "fiu":
+        raise ValueError(f"handles.{name}: expected ({count}, 3) numbers, got {a.shape} {a.dtype}")
+    a = a.astype(np.float64)
+    if not np.isfinite(a).all():
+        raise ValueError(f"handles.{name}: expected finite values, got {int((~np.isfinite(a)).sum())} NaN/inf")
+    return a
 
 
 @dataclass(frozen=True)
@@ -266,8 +321,10 @@ def fit_shell(
         ShellResult.
     """
     t0 = time.perf_counter()
-    v = np.array(init_vertices, dtype=np.float64).reshape(-1, 3)
-    n = v.shape[0]
+    v = np.array(init_vertices, dtype=np.float64)
+    n = topo.vertex_count
+    if v.shape != (n, 3):
+        raise ValueError(f"init_vertices: expected shape ({n}, 3), the mesh's vertices, got {v.shape}")
     if not np.isfinite(v).all():
         raise ValueError("init_vertices: expected finite values")
     prob = _Problem(topo, subspace, handles, config, n)
