@@ -262,8 +262,11 @@ def test_impossible_dimensions_raise(tmp_path):
 def test_missing_file_and_suffix_and_bad_npz(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope.c3d"):
         read_markers(tmp_path / "nope.c3d")
+    (tmp_path / "x.tsv").write_text("x")
+    with pytest.raises(ValueError, match=r"x.tsv: unknown marker file type '.tsv'; expected \.c3d, \.trc or \.npz"):
+        read_markers(tmp_path / "x.tsv")
     (tmp_path / "x.trc").write_text("x")
-    with pytest.raises(ValueError, match=r"expected \.c3d or \.npz"):
+    with pytest.raises(ValueError, match=r"x.trc: not a TRC file"):
         read_markers(tmp_path / "x.trc")
     np.savez(tmp_path / "other.npz", points=np.zeros((1, 1, 3)))
     with pytest.raises(ValueError, match="other.npz: expected an npz with format"):
