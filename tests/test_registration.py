@@ -143,11 +143,23 @@ def test_transfer_of_another_identity_matches_the_hand_made_one(registration, re
     assert err.mean() < 5e-3, f"mean {1e3 * err.mean():.2f} mm"  # measured 3.1 mm
 
 
-def test_a_mesh_the_body_does_not_fit_is_refused(registration):
+def test_the_fit_check_passes_a_body_and_refuses_a_poor_fit(registration):
+    from unibody.registration._register import _check_fit
+
+    assert registration.stats.icp_p95_distance < MAX_FIT_P95 / 5  # a body: well inside
+    _check_fit(torch.full((100,), MAX_FIT_P95))
+    far = torch.cat([torch.zeros(90), torch.full((10,), 0.031)])  # 10 % of the wrap 31 mm off
+    with pytest.raises(ValueError, match=r"^vertices: not a body the canonical mesh can wrap: .* over 31\.0 mm"):
+        _check_fit(far)
+    with pytest.raises(ValueError, match="not a body"):
+        _check_fit(torch.tensor([0.0, math.nan]))
+
+
+@pytest.mark.slow
+def test_a_mesh_the_body_does_not_fit_is_refused():
     # A body-sized ellipsoid passes the size and proportion checks, and the projection would put
     # any wrap on its surface: it used to register, and convert a mesh sequence into garbage.
     # The fit before projection tells them apart (SMPL, SMPL-X, Anny: P95 0.5-0.7 mm; this: 31 mm).
-    assert registration.stats.icp_p95_distance < MAX_FIT_P95 / 5
     v, f = icosphere(3)
     with pytest.raises(ValueError, match=r"vertices: not a body the canonical mesh can wrap: .* over [1-9]\d\.\d mm"):
         register(v * [0.25, 0.85, 0.15] + [0.0, 0.85, 0.0], f, config=PRESETS["coarse"])
