@@ -128,3 +128,29 @@ def test_commands_read_trc(tmp_path, capsys):
     assert main(["view", str(bad), "--record", str(tmp_path / "y.png")]) == 3
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "bad.trc: truncated TRC header" in err
+
+
+def test_a_take_recorded_with_the_other_vertical_axis_gets_a_note(tmp_path, capsys):
+    from unibody.mocap.frames import vertical_note
+
+    g = np.random.default_rng(2)
+    standing = g.uniform(0, 1, (20, 30, 3)) * [0.5, 1.6, 0.3]  # metres, Y up
+    standing[3, :25] = np.nan  # a frame with too few points is skipped
+    assert vertical_note(standing, "y") is None
+    note = vertical_note(standing, "z")
+    assert note.startswith("the markers span 1.") and note.endswith("if the lab is Y up, pass --up y")
+    z_up = standing[..., [0, 2, 1]]
+    assert vertical_note(z_up, "z") is None and "pass --up z" in vertical_note(z_up, "y")
+    assert vertical_note(np.full((4, 3, 3), np.nan), "z") is None
+    for path in REAL:  # OpenSim's files are Y up; the C3D files Z up
+        seq = read_trc(path)
+        assert vertical_note(seq.points, "y") is None and "pass --up y" in vertical_note(seq.points, "z")
+    for path in sorted((evaldata_dir() / "c3d").glob("*.c3d")):
+        assert vertical_note(read_markers(path).points, "z") is None, path.name
+    rows = [[f"{x:.3f}" for x in 1000 * p.ravel()] for p in standing[:6]]
+    take = tmp_path / "take.trc"
+    take.write_text(_trc([f"M{i}" for i in range(30)], rows))
+    assert main(["mocap", "label", str(take), "--out", str(tmp_path / "l.npz")]) == 0
+    assert f"unibody: note: {take}: the markers span" in capsys.readouterr().err
+    assert main(["mocap", "label", str(take), "--up", "y", "--out", str(tmp_path / "m.npz")]) == 0
+    assert "note" not in capsys.readouterr().err

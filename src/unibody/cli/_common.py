@@ -34,6 +34,18 @@ def _progress(line: str, end: str = "\n") -> None:
     print(line, end=end, file=sys.stderr, flush=True)
 
 
+def _read_take(path: Path, up: str):  # noqa: ANN202 (a mocap.c3d.MarkerSequence)
+    """The marker take at ``path`` (C3D, TRC or npz), with a note on stderr when its markers look
+    recorded with the other vertical axis (:func:`unibody.mocap.frames.vertical_note`)."""
+    from ..mocap.c3d import read_markers
+    from ..mocap.frames import vertical_note
+
+    seq = _read(path, read_markers)
+    if (note := vertical_note(seq.points, up)) is not None:
+        _progress(f"unibody: note: {path}: {note}")
+    return seq
+
+
 def _read(path: Path, loader: Callable[..., T], *args, **kwargs) -> T:
     """``loader(path, ...)`` with every failure turned into one InputError line naming ``path``."""
     try:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from ._common import InputError, UsageError, _about, _progress, _read
+from ._common import InputError, UsageError, _about, _progress, _read_take
 
 
 def run_mocap_label(
@@ -24,7 +24,7 @@ def run_mocap_label(
 ) -> None:
     from .._checks import check_device
     from ..io.atomic import check_output, output_lock
-    from ..mocap.c3d import read_markers, write_c3d, write_npz
+    from ..mocap.c3d import write_c3d, write_npz
     from ..mocap.layout import MarkerLayout, available_layouts
     from ..mocap.pipeline import label_sequence, load_labeler
     from ..mocap.trc import write_trc
@@ -34,7 +34,7 @@ def run_mocap_label(
     except ValueError as err:
         raise UsageError(str(err)) from None
     out = check_output(out, inputs=[src], suffixes=[".c3d", ".npz", ".trc"], force=force)
-    seq = _read(src, read_markers)
+    seq = _read_take(src, up)
     labeler = load_labeler(model).to(dev).set_autocast(torch.bfloat16 if bf16 else None)
     layout = None
     if body is not None:
@@ -76,7 +76,6 @@ def run_mocap_label(
 
 def run_mocap_solve(src: Path, out: Path, layout_name: str, up: str, png: Path | None, force: bool = False) -> None:
     from ..io.atomic import atomic_path, check_output, output_lock
-    from ..mocap.c3d import read_markers
     from ..mocap.layout import MarkerLayout
     from ..mocap.pipeline import render_solution, solve_sequence
     from ..motion import save_motion
@@ -84,7 +83,7 @@ def run_mocap_solve(src: Path, out: Path, layout_name: str, up: str, png: Path |
     out = check_output(out, inputs=[src], suffixes=[".npz"], force=force)
     if png is not None:
         png = check_output(png, inputs=[src, out], suffixes=[".png"], force=force, name="--png")
-    seq = _read(src, read_markers)
+    seq = _read_take(src, up)
     layout = MarkerLayout.load(layout_name)
     with output_lock(out):
         t = time.perf_counter()
@@ -107,7 +106,6 @@ def run_mocap_solve(src: Path, out: Path, layout_name: str, up: str, png: Path |
 
 def run_mocap_layout(src: Path, out: Path, base: str, frame: int, up: str, prefix: str, force: bool = False) -> None:
     from ..io.atomic import atomic_path, check_output
-    from ..mocap.c3d import read_markers
     from ..mocap.layout import MarkerLayout
     from ..mocap.pipeline import frame_layout
 
@@ -116,7 +114,7 @@ def run_mocap_layout(src: Path, out: Path, base: str, frame: int, up: str, prefi
             f"--prefix: expected a name prefix not starting with '*' (the mark of unlabelled points), got {prefix!r}"
         )
     out = check_output(out, inputs=[src], suffixes=[".json"], force=force)
-    seq = _read(src, read_markers)
+    seq = _read_take(src, up)
     if not 0 <= frame < seq.num_frames:
         raise UsageError(f"--frame: expected a frame in 0..{seq.num_frames - 1} of {src}, got {frame}")
     layout = MarkerLayout.load(base)

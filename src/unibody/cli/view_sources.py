@@ -13,7 +13,7 @@ import torch
 
 from ..motion import MAX_DISTANCE
 from ..viz.viewer.tracks import GHOST, LABELLED, UNLABELLED, IdentityControls, MarkerTrack, SceneItem
-from ._common import InputError, UsageError, _about, _read
+from ._common import InputError, UsageError, _about, _read, _read_take
 
 __all__ = ["LayerBody", "default_body", "load_item", "panoman_item", "resolved_item"]
 
@@ -250,10 +250,9 @@ def _marker_kinds(points: np.ndarray, labels: tuple[str, ...]) -> np.ndarray:
 
 def marker_item(path: Path, layers: dict, solve: str | None, up: str) -> SceneItem:
     """A C3D (or marker npz) take as a :class:`MarkerTrack`, with its solved body if ``solve`` names a layout."""
-    from ..mocap.c3d import read_markers
     from ..mocap.frames import lab_to_unibody
 
-    seq = _read(path, read_markers)
+    seq = _read_take(path, up)
     if seq.num_frames == 0 or seq.num_markers == 0:
         raise InputError(f"{path}: no marker samples (frames {seq.num_frames}, markers {seq.num_markers})")
     points = lab_to_unibody(seq.points, up=up).astype(np.float32)

@@ -15,7 +15,15 @@ from ..motion import check_fps  # one rule for frame rates (re-exported: the sol
 
 Points = torch.Tensor | np.ndarray  # lab_to_unibody and unibody_to_lab take and return either
 
-__all__ = ["Points", "check_fps", "check_marker_units", "check_points", "lab_to_unibody", "unibody_to_lab"]
+__all__ = [
+    "Points",
+    "check_fps",
+    "check_marker_units",
+    "check_points",
+    "lab_to_unibody",
+    "unibody_to_lab",
+    "vertical_note",
+]
 
 
 def _axes(points: Points, up: str) -> None:
@@ -82,10 +90,9 @@ def check_marker_units(points: np.ndarray, name: str = "points", frames: int = 6
     """
     pts = np.asarray(points, dtype=np.float64)
     vis = np.isfinite(pts).all(-1)
-    rows = np.flatnonzero(vis.sum(1) >= 3)
+    rows = _spread_rows(vis, 3, frames)
     if rows.size == 0:
         return
-    rows = rows[np.unique(np.linspace(0, rows.size - 1, min(frames, rows.size)).round().astype(int))]
     nearest = []
     with np.errstate(over="ignore", invalid="ignore"):
         for t in rows:
@@ -100,3 +107,38 @@ def check_marker_units(points: np.ndarray, name: str = "points", frames: int = 6
             f"{name}: the points are not in metres: neighbouring markers are typically {typical:.3g} units "
             f"apart (a body's markers: 0.01-0.2 m); {hint}"
         )
+
+
+def _spread_rows(vis: np.ndarray, least: int, frames: int) -> np.ndarray:
+    """Up to ``frames`` frame indices spread over the sequence, among those with ``least`` visible points."""
+    rows = np.flatnonzero(vis.sum(1) >= least)
+    if rows.size == 0:
+        return rows
+    return rows[np.unique(np.linspace(0, rows.size - 1, min(frames, rows.size)).round().astype(int))]
+
+
+def vertical_note(points: np.ndarray, up: str, frames: int = 64) -> str | None:
+    """A one-line note when a take in metres looks recorded with the other vertical axis, else None.
+
+    The statistic: over up to ``frames`` frames spread over the take (6 or more visible points),
+    the median extent of the markers (5th to 95th percentile) along each axis. A body standing
+    in its lab spans 1.3-1.7 m along its vertical axis (the evaluation files' C3D and TRC takes)
+    and 0.2-0.85 m along the other candidate; so ``up``'s extent under 0.9 m with the other
+    candidate's 1.5 times larger reads as the wrong axis (OpenSim's TRC files are Y up). A take
+    lying on the floor most of the time reads so too: it is a note, not an error.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    vis = np.isfinite(pts).all(-1)
+    rows = _spread_rows(vis, 6, frames)
+    if rows.size == 0:
+        return None
+    spans = [np.percentile(pts[t, vis[t]], 95, axis=0) - np.percentile(pts[t, vis[t]], 5, axis=0) for t in rows]
+    extent = np.median(spans, axis=0)
+    other = "y" if up == "z" else "z"
+    mine, theirs = extent["xyz".index(up)], extent["xyz".index(other)]
+    if mine < 0.9 and theirs > 1.5 * mine:
+        return (
+            f"the markers span {theirs:.2f} m along {other.upper()} but {mine:.2f} m along {up.upper()} (the "
+            f"vertical axis, --up {up}) in most frames: if the lab is {other.upper()} up, pass --up {other}"
+        )
+    return None
