@@ -187,6 +187,7 @@ def test_errors_are_one_line_with_their_exit_code(tmp_path, capsys):
         (("mocap", "label", motion, "--out", tmp_path / "l.txt"), 4, ["expected a .c3d or .npz or .trc file"]),
         (("mocap", "solve", motion, "--out", tmp_path / "x.c3d"), 4, ["expected a .npz file"]),
         (("demo", "--backends", "smpl2"), 2, ["--backends: unknown backend 'smpl2'"]),
+        (("demo", "--backends", "pca=3"), 2, ["--backends: pca ships with unibody and takes no path, got 'pca=3'"]),
     ]
     for args, expected, needles in cases:
         code, stdout, err = _run(capsys, *args)

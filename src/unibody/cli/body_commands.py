@@ -55,6 +55,8 @@ def demo_layers(backends: list[str]) -> list[tuple[str, object, torch.Tensor]]:
         name, _, path = spec.partition("=")
         if name not in BACKENDS:
             raise UsageError(f"--backends: unknown backend {name!r}; choose from {', '.join(BACKENDS)}")
+        if name in ("anny", "pca") and path:  # bundled: a path was silently ignored
+            raise UsageError(f"--backends: {name} ships with unibody and takes no path, got {spec!r}")
         if name == "anny":
             keep = list(DEMO_IDENTITIES) if len(backends) == 1 else ["woman", "child"]
             layer = BodyLayer.from_anny()
