@@ -79,6 +79,8 @@ def test_written_files_read_back_and_parse_as_opensim_writes_them(tmp_path):
     assert lines[0] == "PathFileType\t4\t(X/Y/Z)\tout.trc" and lines[2].split("\t")[2:5] == ["7", "4", "mm"]
     with pytest.raises(ValueError, match="labels: a TRC label cannot hold a tab or a line break, got .a.tb."):
         write_trc(tmp_path / "x.trc", MarkerSequence(points[:, :1], ("a\tb",), ("",), 120.0))
+    with pytest.raises(ValueError, match=r"seq: expected at least one frame and one marker, got \(0, 1, 3\)"):
+        write_trc(tmp_path / "x.trc", MarkerSequence(points[:0, :1], ("a",), ("",), 120.0))
     assert not (tmp_path / "x.trc").exists()
 
 

@@ -99,11 +99,13 @@ def write_trc(path: str | Path, seq: MarkerSequence) -> None:
     atomically at exactly ``path`` (:func:`unibody.io.atomic.atomic_path`).
 
     Raises:
-        ValueError: a label holding a tab or a line break (the format's separators), or one that is
-            empty or padded with spaces (readers strip them).
+        ValueError: no frame or no marker; a label holding a tab or a line break (the format's
+            separators), or one that is empty or padded with spaces (readers strip them).
     """
     from ..io.atomic import atomic_path
 
+    if seq.num_frames == 0 or seq.num_markers == 0:  # a TRC file holds at least one of each
+        raise ValueError(f"seq: expected at least one frame and one marker, got {seq.points.shape}")
     names = seq.qualified_labels
     for name, label, subject in zip(names, seq.labels, seq.subjects, strict=True):
         if "\t" in name or len(f"{name}.".splitlines()) > 1:  # splitlines also breaks at \v, \x85, \u2028, ...
