@@ -57,7 +57,8 @@ def test_recovers_every_component_of_the_native_pca():
     # The shipped space (128 components; limits |c_k| <= 10 sigma_0 / sigma_k, up to 38,490) failed
     # on its own bodies: the first L-BFGS step made an 18.8 m body and the layer refused it.
     layer = BodyLayer.from_pca().double()
-    truth = 0.8 * torch.randn(2, 128, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    # The second of these bodies: with slopes in proportion to the spans it stops 0.13 m off.
+    truth = 0.8 * torch.randn(2, 128, generator=torch.Generator().manual_seed(3), dtype=torch.float64)[1:]
     fit = fit_identity(layer, _reposed(layer, truth), lbfgs_steps=100)
     assert float(fit.per_vertex_error.amax()) < 1e-5 and float((fit.params - truth)[:, :32].abs().amax()) < 1e-3
     bounded = _Bounded(param_limits(layer.identity), truth)
