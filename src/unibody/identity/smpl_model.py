@@ -204,17 +204,28 @@ class SMPLModel(nn.Module):
         rot = axis_angle_to_matrix(pose)  # (B, J, 3, 3)
         eye = torch.eye(3, dtype=rot.dtype, device=rot.device)
         feature = (rot[:, 1:] - eye).reshape(b, -1)
-        posed = rest + (feature @ self.posedirs).view(b, self.num_vertices, 3)
+        v, j = self.num_vertices, self.num_joints
+        # Vertex-major (V, 3, B) throughout, each stage one product over every pose: the
+        # blended transforms as (V, J) @ (J, 12 B), not B broadcast (V, J) @ (J, 12) products,
+        # and applied by multiply-adds, not (3 x 3) @ (3 x 1) ones: 64 SMPL-X poses 1.4x faster
+        # in float32 on two cores. The blendshapes' product is taken as P^T F^T in float32; in
+        # float64 that product ran 1.7x slower than F P, whose transposed copy costs less.
+        if feature.dtype == torch.float32:
+            shapes = self.posedirs.t() @ feature.t()
+        else:
+            shapes = (feature @ self.posedirs).t().contiguous()
+        posed = rest.permute(1, 2, 0) + shapes.view(v, 3, b)
         local_t = torch.cat([joints[:, :1], joints[:, 1:] - joints[:, self.parents[1:]]], dim=1)
         g_rot, g_pos = forward_kinematics(self.tree, rot, local_t.expand(b, -1, -1))
         skin_t = g_pos - (g_rot @ joints[..., None]).squeeze(-1)
-        mats = torch.cat([g_rot, skin_t[..., None]], dim=-1).reshape(b, self.num_joints, 12)
-        blended = (self.weights @ mats).view(b, self.num_vertices, 3, 4)
-        vertices = (blended[..., :3] @ posed[..., None]).squeeze(-1) + blended[..., 3]
+        mats = torch.cat([g_rot, skin_t[..., None]], dim=-1)  # (B, J, 3, 4)
+        blended = (self.weights @ mats.permute(1, 2, 3, 0).reshape(j, 12 * b)).view(v, 3, 4, b)
+        out = torch.addcmul(blended[:, :, 3], blended[:, :, 0], posed[:, None, 0])
+        out = out.addcmul_(blended[:, :, 1], posed[:, None, 1]).addcmul_(blended[:, :, 2], posed[:, None, 2])
         if transl is not None:
-            vertices = vertices + transl[:, None]
+            out = out.add_(transl.t())
             g_pos = g_pos + transl[:, None]
-        return SMPLOutput(vertices, g_pos)
+        return SMPLOutput(out.permute(2, 0, 1), g_pos)  # (B, V, 3), a view of vertex-major storage
 
     def _coefficients(self, betas: torch.Tensor | None, expression: torch.Tensor | None) -> torch.Tensor | None:
         """[betas, expression] (B, K + E) with zeros for a missing part; None when both are None."""
