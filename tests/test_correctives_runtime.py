@@ -144,5 +144,5 @@ def test_inversion_knows_the_correctives():
         if rounds:  # the residuals re-pose as the layer does, with its correctives (rounds 0: plain LBS)
             torch.testing.assert_close(res.vertices, again, atol=1e-5, rtol=0)
     assert err[2] < 0.6 * err[0]
-    with pytest.raises(ValueError, match="corrective_rounds: expected >= 0"):
+    with pytest.raises(ValueError, match="corrective_rounds: expected an integer >= 0"):
         InversionConfig(corrective_rounds=-1)

@@ -110,8 +110,34 @@ def test_bad_meshes(case, make, match):
 def test_config_errors():
     with pytest.raises(ValueError, match="method: expected one of skeleton, analytic, autograd, got 'gn'"):
         InversionConfig(method="gn")
-    with pytest.raises(ValueError, match=r"region_weights: expected 4 non-negative weights"):
+    with pytest.raises(ValueError, match=r"region_weights: expected 4 finite non-negative weights"):
         InversionConfig(region_weights=(1.0, 2.0))
+
+
+# Each was accepted and failed later: 0 or -1 vertices per joint and a NaN damping as "vertices: the
+# pose solve of mesh 0 gave non-finite values; are these body meshes?" (blaming the meshes); 1.5
+# vertices per joint, True passes or all-zero region weights ran on as something else.
+@pytest.mark.parametrize(
+    ("field", "value", "match"),
+    [
+        ("vertices_per_joint", 0, r"vertices_per_joint: expected an integer >= 1, got 0"),
+        ("vertices_per_joint", -1, r"vertices_per_joint: expected an integer >= 1, got -1"),
+        ("vertices_per_joint", 1.5, r"vertices_per_joint: expected an integer >= 1, got 1.5"),
+        ("body_passes", True, r"body_passes: expected an integer >= 0, got True"),
+        ("gauss_newton_steps", -2, r"gauss_newton_steps: expected an integer >= 0"),
+        ("gauss_newton_samples", 0, r"gauss_newton_samples: expected an integer >= 1"),
+        ("damping", float("nan"), r"damping: expected a finite number >= 0, got nan"),
+        ("damping", -1e-3, r"damping: expected a finite number >= 0"),
+        ("lr", 0.0, r"lr: expected a finite number > 0, got 0.0"),
+        ("lr", float("inf"), r"lr: expected a finite number > 0, got inf"),
+        ("region_weights", (0.0, 0.0, 0.0, 0.0), r"region_weights: .*not all 0"),
+        ("region_weights", (1.0, float("nan"), 1.0, 1.0), r"region_weights: expected 4 finite"),
+        ("residuals", "yes", r"residuals: expected True or False, got 'yes'"),
+    ],
+)
+def test_config_fields_are_checked_by_name(field, value, match):
+    with pytest.raises(ValueError, match=match):
+        InversionConfig(**{field: value})
 
 
 def test_cli_invert_and_pose_round_trip(tmp_path, anny_layer64):

@@ -132,14 +132,26 @@ class InversionConfig:
             value, choices = getattr(self, name), get_args(alias)
             if value not in choices:
                 raise ValueError(f"{name}: expected one of {', '.join(choices)}, got {value!r}")
-        for name in ("body_passes", "full_passes", "ns_iters", "steps", "corrective_rounds"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
-        if len(self.region_weights) != len(REGIONS) or min(self.region_weights) < 0:
+        counts = {"body_passes": 0, "full_passes": 0, "ns_iters": 0, "steps": 0, "corrective_rounds": 0}
+        counts |= {"gauss_newton_steps": 0, "vertices_per_joint": 1, "gauss_newton_samples": 1}
+        for name, low in counts.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
+        for name, low in (("damping", 0.0), ("lr", 0.0)):
+            value = getattr(self, name)
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            if not ok or value < low or (name == "lr" and value == 0):
+                raise ValueError(f"{name}: expected a finite number {'>' if name == 'lr' else '>='} 0, got {value!r}")
+        weights = self.region_weights
+        numbers = all(isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) for w in weights)
+        if len(weights) != len(REGIONS) or not numbers or min(weights) < 0 or max(weights) == 0:
             raise ValueError(
-                f"region_weights: expected {len(REGIONS)} non-negative weights "
-                f"({', '.join(REGIONS)}), got {self.region_weights}"
+                f"region_weights: expected {len(REGIONS)} finite non-negative weights, not all 0 "
+                f"({', '.join(REGIONS)}), got {weights}"
             )
+        if not isinstance(self.residuals, bool):
+            raise ValueError(f"residuals: expected True or False, got {self.residuals!r}")
 
 
 PRESETS: dict[str, InversionConfig] = {
