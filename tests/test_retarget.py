@@ -121,3 +121,28 @@ def test_bad_input(layer):
     rot = torch.eye(3, dtype=torch.float64).expand(4, 3, 3, 3)
     with pytest.raises(ValueError, match="rest_positions, rest_orientations: required with orientations"):
         retarget(layer, pos, ["Hips", "Chest", "Head"], orientations=rot)
+
+
+# Each was accepted: iterations -1 and prior_weight -1 retargeted 530 and 60 mm off without a word,
+# num_components 0 failed inside torch ("max(): Expected reduction dim ..."), max_coeff NaN or -1
+# as "identity params: expected finite values", batch 0 or 2.5 ran as something else.
+@pytest.mark.parametrize(
+    ("field", "value", "match"),
+    [
+        ("iterations", -1, r"iterations: expected an integer >= 1, got -1"),
+        ("batch", 0, r"batch: expected an integer >= 1, got 0"),
+        ("batch", 2.5, r"batch: expected an integer >= 1, got 2.5"),
+        ("num_components", 0, r"num_components: expected an integer >= 1, got 0"),
+        ("identity_steps", -1, r"identity_steps: expected an integer >= 0"),
+        ("offset_rounds", True, r"offset_rounds: expected an integer >= 0, got True"),
+        ("max_coeff", float("nan"), r"max_coeff: expected a finite number > 0, got nan"),
+        ("max_coeff", -1.0, r"max_coeff: expected a finite number > 0, got -1.0"),
+        ("prior_weight", -1.0, r"prior_weight: expected a finite number >= 0, got -1.0"),
+        ("orientation_weight", float("inf"), r"orientation_weight: expected a finite number >= 0, got inf"),
+    ],
+)
+def test_config_fields_are_checked_by_name(field, value, match):
+    from unibody.fitting.retarget import RetargetConfig
+
+    with pytest.raises(ValueError, match=match):
+        RetargetConfig(**{field: value})

@@ -6,9 +6,21 @@ Every message names the argument, what was expected and what was given, e.g.
 
 from __future__ import annotations
 
+import math
+import numbers
+
 import torch
 
-__all__ = ["check_device", "check_grad_mode", "check_shape", "check_finite", "check_like", "check_tensor"]
+__all__ = [
+    "check_count",
+    "check_device",
+    "check_grad_mode",
+    "check_shape",
+    "check_finite",
+    "check_like",
+    "check_number",
+    "check_tensor",
+]
 
 
 def _fmt(spec: str) -> str:
@@ -100,3 +112,16 @@ def check_grad_mode(what: str) -> None:
     be differentiated)."""
     if torch.is_inference_mode_enabled():
         raise RuntimeError(f"{what} descends a gradient: call it outside torch.inference_mode() (no_grad is fine)")
+
+
+def check_count(value: object, name: str, low: int = 0) -> None:
+    """ValueError unless ``value`` is an integer (not a bool) >= ``low`` (a settings field)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+        raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
+
+
+def check_number(value: object, name: str, *, positive: bool = False) -> None:
+    """ValueError unless ``value`` is a finite real number (not a bool) >= 0, or > 0 when ``positive``."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value < 0 or (positive and value == 0):
+        raise ValueError(f"{name}: expected a finite number {'>' if positive else '>='} 0, got {value!r}")

@@ -32,7 +32,7 @@ from typing import Literal, NamedTuple, get_args
 import torch
 from torch import nn
 
-from .._checks import check_finite, check_like, check_shape
+from .._checks import check_count, check_finite, check_like, check_number, check_shape
 from ..body import REST_EXTENT_M, BodyLayer, PreparedIdentity, outside_rest_extent
 from ..geometry.kinematics import forward_kinematics
 from ..geometry.procrustes import polar_svd
@@ -135,14 +135,9 @@ class InversionConfig:
         counts = {"body_passes": 0, "full_passes": 0, "ns_iters": 0, "steps": 0, "corrective_rounds": 0}
         counts |= {"gauss_newton_steps": 0, "vertices_per_joint": 1, "gauss_newton_samples": 1}
         for name, low in counts.items():
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
-        for name, low in (("damping", 0.0), ("lr", 0.0)):
-            value = getattr(self, name)
-            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-            if not ok or value < low or (name == "lr" and value == 0):
-                raise ValueError(f"{name}: expected a finite number {'>' if name == 'lr' else '>='} 0, got {value!r}")
+            check_count(getattr(self, name), name, low)
+        check_number(self.damping, "damping")
+        check_number(self.lr, "lr", positive=True)
         weights = self.region_weights
         numbers = all(isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) for w in weights)
         if len(weights) != len(REGIONS) or not numbers or min(weights) < 0 or max(weights) == 0:

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .._checks import check_finite, check_grad_mode, check_shape
+from .._checks import check_count, check_finite, check_grad_mode, check_number, check_shape
 from ..body import BodyLayer, PreparedIdentity
 from ..geometry.procrustes import kabsch, polar_svd
 from ..geometry.rotations import matrix_to_axis_angle, shortest_arc, skew
@@ -73,6 +73,14 @@ class RetargetConfig:
     max_coeff: float = 4.0
     identity_steps: int = 60
     offset_rounds: int = 1
+
+    def __post_init__(self) -> None:
+        for name, low in (("iterations", 1), ("batch", 1), ("num_components", 1), ("identity_steps", 0)):
+            check_count(getattr(self, name), name, low)
+        check_count(self.offset_rounds, "offset_rounds")
+        for name in ("orientation_weight", "prior_weight"):
+            check_number(getattr(self, name), name)
+        check_number(self.max_coeff, "max_coeff", positive=True)
 
 
 @dataclass(frozen=True, slots=True)
