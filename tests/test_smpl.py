@@ -311,3 +311,13 @@ def test_implements_the_identity_backend_protocol(smpl_files):
     assert isinstance(model, IdentityBackend) and missing_members(model) == []
     assert model.param_bounds is None  # betas are unbounded
     assert torch.equal(model.template(), model(model.default_params())[0])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_posed_forward_of_no_pose_is_empty(tmp_path, dtype):
+    """A batch of 0 poses gives 0 meshes (it failed as "cannot reshape tensor of 0 elements")."""
+    from unibody.identity.smpl_model import SMPLModel
+
+    model = SMPLModel.from_file(write_npz(tmp_path / "SMPL_NEUTRAL.npz", make_model("smpl", oracle=True)), dtype=dtype)
+    out = model(torch.zeros(0, model.num_joints, 3, dtype=dtype), transl=torch.zeros(0, 3, dtype=dtype))
+    assert out.vertices.shape == (0, model.num_vertices, 3) and out.joints.shape == (0, model.num_joints, 3)

@@ -139,8 +139,8 @@ class InversionConfig:
         check_number(self.damping, "damping")
         check_number(self.lr, "lr", positive=True)
         weights = self.region_weights
-        numbers = all(isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) for w in weights)
-        if len(weights) != len(REGIONS) or not numbers or min(weights) < 0 or max(weights) == 0:
+        finite = all(isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) for w in weights)
+        if len(weights) != len(REGIONS) or not finite or min(weights) < 0 or max(weights) == 0:
             raise ValueError(
                 f"region_weights: expected {len(REGIONS)} finite non-negative weights, not all 0 "
                 f"({', '.join(REGIONS)}), got {weights}"

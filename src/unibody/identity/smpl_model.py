@@ -40,7 +40,8 @@ class SMPLOutput:
     """Posed SMPL-family meshes.
 
     Attributes:
-        vertices: (B, V, 3) m, posed vertices in the model's frame, ``transl`` added.
+        vertices: (B, V, 3) m, posed vertices in the model's frame, ``transl`` added (for B > 1 a
+            view of vertex-major storage, as ``BodyLayer``'s; ``.contiguous()`` packs it).
         joints: (B, J, 3) m, posed joints of the model's kinematic tree, ``transl`` added.
     """
 
@@ -203,8 +204,8 @@ class SMPLModel(nn.Module):
         joints = self.joint_regressor @ rest  # (1 or B, J, 3)
         rot = axis_angle_to_matrix(pose)  # (B, J, 3, 3)
         eye = torch.eye(3, dtype=rot.dtype, device=rot.device)
-        feature = (rot[:, 1:] - eye).reshape(b, -1)
         v, j = self.num_vertices, self.num_joints
+        feature = (rot[:, 1:] - eye).reshape(b, 9 * (j - 1))  # sized, not -1: a batch of 0 has no size to infer
         # Vertex-major (V, 3, B) throughout, each stage one product over every pose: the
         # blended transforms as (V, J) @ (J, 12 B), not B broadcast (V, J) @ (J, 12) products,
         # and applied by multiply-adds, not (3 x 3) @ (3 x 1) ones: 64 SMPL-X poses 1.4x faster
