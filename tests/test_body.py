@@ -153,6 +153,20 @@ def test_bad_transl_and_prepared(layer, bind, rig):
         layer.prepare_identity(torch.zeros(1, 6, dtype=torch.float64))
 
 
+def test_flags_names_and_rotations_are_checked(layer, bind):
+    """Each was accepted or failed elsewhere: a truthy string as absolute / check, joint_index(5)
+    as "'int' object is not iterable", to_relative of 70 joints inside a broadcast."""
+    pose = torch.zeros(2, 77, 3, dtype=torch.float64)
+    with pytest.raises(TypeError, match=r"absolute: expected True or False, got 'yes'"):
+        layer.pose(bind, pose, absolute="yes")
+    with pytest.raises(TypeError, match=r"check: expected True or False, got 'no'"):
+        layer.pose(bind, pose, check="no")
+    with pytest.raises(TypeError, match=r"joint name: expected a str, got int 5"):
+        joint_index(5)
+    with pytest.raises(ValueError, match=r"local_rot: expected shape \(\.\.\., 77, 3, 3\), got \(2, 70, 3, 3\)"):
+        layer.to_relative(torch.zeros(2, 70, 3, 3, dtype=torch.float64))
+
+
 def test_unknown_names():
     from unibody import identity
 

@@ -107,6 +107,15 @@ def test_bad_meshes(case, make, match):
         PoseInverter(layer).invert(make(target), prepared)
 
 
+def test_inverter_arguments_are_checked(case):
+    """A preset's name or a non-layer failed as AttributeError ('str' object has no attribute ...)."""
+    layer = case[0]
+    with pytest.raises(TypeError, match=r"config: expected an InversionConfig \(PRESETS\['analytic'\]\?\), got str"):
+        PoseInverter(layer, "analytic")
+    with pytest.raises(TypeError, match=r"layer: expected a BodyLayer, got str"):
+        PoseInverter("layer")
+
+
 def test_config_errors():
     with pytest.raises(ValueError, match="method: expected one of skeleton, analytic, autograd, got 'gn'"):
         InversionConfig(method="gn")

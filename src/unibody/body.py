@@ -589,6 +589,9 @@ class BodyLayer(nn.Module):
                 overflowed the dtype, or ``correctives=True`` on a layer without them.
         """
         corr = self._use_correctives(correctives)
+        for name, flag in (("absolute", absolute), ("check", check)):
+            if not isinstance(flag, bool):  # a truthy string would pass as True
+                raise TypeError(f"{name}: expected True or False, got {flag!r}")
         if not isinstance(prepared, PreparedIdentity):
             raise TypeError(f"prepared: expected a PreparedIdentity, got {type(prepared).__name__}")
         check_tensor(pose, "pose")
@@ -759,7 +762,12 @@ class BodyLayer(nn.Module):
         return pose_transforms(self.rig_tree, local_rot, p.offsets, transl, p.rest_rotations, p.rest_joints)
 
     def to_relative(self, local_rot: torch.Tensor) -> torch.Tensor:
-        """Absolute local rotations (B, 77, 3, 3) -> T-pose-relative: O_p R_abs O_j^T (paper 001)."""
+        """Absolute local rotations (..., 77, 3, 3) -> T-pose-relative: O_p R_abs O_j^T (paper 001)."""
+        check_tensor(local_rot, "local_rot")
+        n = self.num_joints - 1
+        if tuple(local_rot.shape[-3:]) != (n, 3, 3):
+            raise ValueError(f"local_rot: expected shape (..., {n}, 3, 3), got {tuple(local_rot.shape)}")
+        check_like(local_rot, self.tpose_orient, name="local_rot")
         o = self.tpose_orient
         return o[self.parents[1:]] @ local_rot @ o[1:].transpose(-1, -2)
 

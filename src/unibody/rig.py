@@ -47,6 +47,8 @@ _INDEX = {name: i for i, name in enumerate(JOINT_NAMES)}
 
 def joint_index(name: str) -> int:
     """Return the index of a canonical joint by name (``"LeftForeArm"`` -> 14)."""
+    if not isinstance(name, str):
+        raise TypeError(f"joint name: expected a str, got {type(name).__name__} {name!r}")
     try:
         return _INDEX[name]
     except KeyError:

@@ -191,6 +191,11 @@ class PoseInverter(nn.Module):
 
     def __init__(self, layer: BodyLayer, config: InversionConfig | None = None) -> None:
         super().__init__()
+        if not isinstance(layer, BodyLayer):
+            raise TypeError(f"layer: expected a BodyLayer, got {type(layer).__name__}")
+        if not isinstance(config, InversionConfig | None):
+            hint = f" (PRESETS[{config!r}]?)" if isinstance(config, str) and config in PRESETS else ""
+            raise TypeError(f"config: expected an InversionConfig{hint}, got {type(config).__name__}")
         self.layer = layer
         self.config = InversionConfig() if config is None else config
         skin = layer.skinning
