@@ -477,3 +477,19 @@ def test_pose_writes_the_motion_frame_rate(tmp_path, capsys):
     from unibody.motion import load_mesh_sequence
 
     assert load_mesh_sequence(tmp_path / "meshes.npz").fps == 48.0
+
+
+def test_writing_onto_a_folder_is_refused_by_name(tmp_path):
+    """A folder given as the file to write: the temporary file was made beside the folder and
+    the rename failed as `IsADirectoryError: ... '.tmp.x.tmp' -> 'out'`; now one line, nothing
+    left beside it."""
+    folder = tmp_path / "out"
+    folder.mkdir()
+    motion = Motion(pose=np.zeros((2, 77, 3), np.float32), transl=np.zeros((2, 3), np.float32), fps=30.0)
+    with pytest.raises(OutputError, match=r"out: is a folder; expected the path of a file to write"):
+        save_motion(folder, motion)
+    with pytest.raises(OutputError, match=r"is a folder"):
+        save_npz(folder, x=np.zeros(3))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"] and not any(folder.iterdir())
+    with pytest.raises(TypeError, match=r"motion: expected a unibody.motion.Motion, got str"):
+        save_motion(tmp_path / "m.npz", "walk.npz")

@@ -167,6 +167,8 @@ def save_motion(path: str | Path, motion: Motion) -> None:
         ValueError: a field has the wrong shape, is not finite or beyond float32, the root is
             farther than :data:`MAX_DISTANCE` from the origin, or ``fps`` is not positive.
     """
+    if not isinstance(motion, Motion):
+        raise TypeError(f"motion: expected a unibody.motion.Motion, got {type(motion).__name__}")
     pose, transl, identity = _check_motion(motion.pose, motion.transl, motion.identity, "")
     fields = {
         "format": np.asarray(MOTION_FORMAT),

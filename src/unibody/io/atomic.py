@@ -92,6 +92,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     ends without an exception, and removed otherwise.
     """
     path = Path(path)
+    if path.is_dir():  # else the temporary file lands beside the folder and the rename fails
+        raise OutputError(f"{path}: is a folder; expected the path of a file to write")
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent or ".")
     os.close(fd)
     tmp = Path(tmp_name)
