@@ -259,6 +259,26 @@ def test_label_sequence_per_frame_keeps_unlabelled_points():
     assert out.points.shape[1] >= len(layout)
 
 
+def test_label_and_solve_arguments_are_checked_by_name():
+    """Each failed as an AttributeError ('str' object has no attribute 'num_labels'), a raw
+    TypeError (a batch of 2.5) or, for a truthy string as ``tracklets``, passed as True."""
+    from unibody.mocap.pipeline import solve_sequence
+
+    model = load_labeler("pig39")
+    layout = MarkerLayout.load("pig39")
+    seq = MarkerSequence(np.zeros((2, len(layout), 3)), layout.labels, ("",) * len(layout), 100.0)
+    with pytest.raises(TypeError, match=r"model: expected a Labeler \(load_labeler\(name or path\)\), got str"):
+        label_sequence(seq, "pig39")
+    with pytest.raises(TypeError, match=r"seq: expected a MarkerSequence \(read_markers\(path\)\), got ndarray"):
+        label_sequence(seq.points, model)
+    with pytest.raises(ValueError, match=r"batch: expected an integer >= 1, got 2.5"):
+        label_sequence(seq, model, batch=2.5)
+    with pytest.raises(TypeError, match=r"tracklets: expected True or False, got 'no'"):
+        label_sequence(seq, model, tracklets="no")
+    with pytest.raises(TypeError, match=r"layout: expected a MarkerLayout \(MarkerLayout.load\(name\)\), got str"):
+        solve_sequence(seq, "pig39")
+
+
 _SOLVER_MODULES = ("solve", "derive", "_stage1", "_stage2", "_marker_body", "relabel")
 
 

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from .._checks import check_count
 from .c3d import MarkerSequence
 from .coincident import COINCIDENT_TOL, find_coincident
 from .frames import check_marker_units, lab_to_unibody
@@ -202,6 +203,16 @@ def load_labeler(name_or_path: str | Path) -> Labeler:
         return Labeler.load(f)
 
 
+def _check_inputs(seq: object, model: object = None, layout: object = None) -> None:
+    """TypeError naming the argument that is not a MarkerSequence, Labeler or MarkerLayout."""
+    if not isinstance(seq, MarkerSequence):
+        raise TypeError(f"seq: expected a MarkerSequence (read_markers(path)), got {type(seq).__name__}")
+    if model is not None and not isinstance(model, Labeler):
+        raise TypeError(f"model: expected a Labeler (load_labeler(name or path)), got {type(model).__name__}")
+    if layout is not None and not isinstance(layout, MarkerLayout):
+        raise TypeError(f"layout: expected a MarkerLayout (MarkerLayout.load(name)), got {type(layout).__name__}")
+
+
 def label_sequence(
     seq: MarkerSequence,
     model: Labeler,
@@ -242,6 +253,10 @@ def label_sequence(
     Points farther than ``FAR_RADIUS`` (2 m) from their frame's main cluster
     (:func:`main_cluster`) are not given to the labeler and stay unlabelled.
     """
+    _check_inputs(seq, model=model)
+    check_count(batch, "batch", 1)
+    if not isinstance(tracklets, bool):  # a truthy string would pass as True
+        raise TypeError(f"tracklets: expected True or False, got {tracklets!r}")
     arg = "layout"
     if body is not None:
         warnings.warn(
@@ -319,6 +334,7 @@ def solve_sequence(
 
     Layout labels missing from ``seq`` are treated as never visible; at least a few must exist.
     """
+    _check_inputs(seq, layout=layout)
     present = [x for x in layout.labels if x in seq.labels]
     if len(present) < 6:
         raise ValueError(
