@@ -239,6 +239,21 @@ def test_bad_input_is_named(shipped, bodies):
     layer, params, pose = _intersecting_body()
     with pytest.raises(ValueError, match="patience"):
         resolve_self_intersections(shipped, layer, params, pose, patience=0)
+    # Each was accepted or failed elsewhere: a NaN prior weight as "pose: expected finite values",
+    # samples -3 inside torch, 3 identities for 1 pose silently cut to 1, a string as rigid_parts.
+    for kw, error, match in (
+        ({"prior_weight": float("nan")}, ValueError, r"prior_weight: expected a finite number >= 0, got nan"),
+        ({"prior_weight": -5.0}, ValueError, r"prior_weight: expected a finite number >= 0"),
+        ({"lr": float("nan")}, ValueError, r"lr: expected a finite number > 0, got nan"),
+        ({"samples": -3}, ValueError, r"samples: expected an integer >= 1, got -3"),
+        ({"rigid_parts": "no"}, TypeError, r"rigid_parts: expected True or False, got 'no'"),
+        ({"params": params.expand(3, -1)}, ValueError, r"params: expected \(1, K\) for 1 pose\(s\), got \(3, 10\)"),
+    ):
+        args = {"params": params, **kw}
+        with pytest.raises(error, match=match):
+            resolve_self_intersections(shipped, layer, args.pop("params"), pose, steps=1, **args)
+    with pytest.raises(TypeError, match=r"occupancy: expected a BodyOccupancy"):
+        resolve_self_intersections("shipped", layer, params, pose)
 
 
 def test_training_runs_and_resumes(tmp_path):

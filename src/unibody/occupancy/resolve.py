@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .._checks import check_finite, check_grad_mode, check_shape
+from .._checks import check_count, check_finite, check_grad_mode, check_number, check_shape, check_tensor
 from ..body import BodyLayer
 from .data import generator
 from .field import BodyOccupancy
@@ -75,16 +75,30 @@ def resolve_self_intersections(
     last (e.g. to count intersecting triangles).
     """
     check_grad_mode("resolve_self_intersections")
+    if not isinstance(occupancy, BodyOccupancy):
+        raise TypeError(
+            f"occupancy: expected a BodyOccupancy (BodyOccupancy.pretrained()), got {type(occupancy).__name__}"
+        )
+    if not isinstance(layer, BodyLayer):
+        raise TypeError(f"layer: expected a BodyLayer, got {type(layer).__name__}")
     check_shape(pose, "B 77 3", name="pose")
     check_finite(pose, "pose")
-    if not isinstance(steps, int) or steps < 0:
-        raise ValueError(f"steps: expected an int >= 0, got {steps!r}")
-    if patience is not None and (not isinstance(patience, int) or patience < 1):
-        raise ValueError(f"patience: expected an int >= 1 or None, got {patience!r}")
+    check_tensor(params, "params")
+    b = pose.shape[0]
+    if params.ndim != 2 or params.shape[0] not in (1, b):  # else rows were silently dropped
+        want = "(1, K)" if b == 1 else f"(1, K) or ({b}, K)"
+        raise ValueError(f"params: expected {want} for {b} pose(s), got {tuple(params.shape)}")
+    check_count(steps, "steps")
+    if patience is not None:
+        check_count(patience, "patience", 1)
+    check_count(samples, "samples", 1)
+    check_number(lr, "lr", positive=True)
+    check_number(prior_weight, "prior_weight")
+    if not isinstance(rigid_parts, bool):
+        raise TypeError(f"rigid_parts: expected True or False, got {rigid_parts!r}")
     start = pose.detach()
     delta = torch.zeros_like(start[:, 1:], requires_grad=True)
     opt = torch.optim.Adam([delta], lr=lr)
-    b = start.shape[0]
     done = torch.zeros(b, dtype=torch.bool, device=start.device)
     zeros = torch.zeros(b, dtype=torch.long, device=start.device)  # consecutive zero terms
     finished = torch.full((b,), steps, dtype=torch.long)
