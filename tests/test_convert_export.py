@@ -282,6 +282,42 @@ def _bad_motion(motion: Motion, **fields) -> Motion:
     return Motion(**(kw | fields))
 
 
+def test_convert_options_are_checked_when_made():
+    """A batch of 0, a preset "best" or a dtype "half" passed skeletal readers unseen (the batch
+    was clamped, the others ignored) and failed elsewhere only when a path used them."""
+    for kw, error, match in (
+        ({"batch": 0}, ValueError, r"^batch: expected an integer >= 1, got 0$"),
+        ({"batch": 2.5}, ValueError, r"^batch: expected an integer >= 1, got 2.5$"),
+        ({"preset": "best"}, ValueError, r"^preset: expected one of fast, analytic, .*got 'best'$"),
+        ({"dtype": "half"}, ValueError, r"^dtype: expected float32 or float64, got 'half'$"),
+        ({"units": "furlong"}, ValueError, r"^units: expected one of m, cm, mm, in, ft or None"),
+        ({"models": 3}, TypeError, r"^models: expected a path or None, got int$"),
+    ):
+        with pytest.raises(error, match=match):
+            ConvertOptions(**kw)
+
+
+def test_readers_and_writers_name_wrong_argument_types(motion, tmp_path):
+    """Through convert.reader / writer (what `unibody convert` uses): options=None failed as
+    "'NoneType' object has no attribute 'units'", a dict as "... 'dtype'"; write_bvh wrote a BVH
+    into a .glb path."""
+    from unibody.convert import reader, writer
+
+    path = tmp_path / "m.motion.npz"
+    writer("motion")(motion, path, OPTIONS)
+    with pytest.raises(TypeError, match=r"^options: expected a ConvertOptions, got NoneType$"):
+        reader("motion")(path, None)
+    with pytest.raises(TypeError, match=r"^path: expected a file path, got int$"):
+        reader("motion")(3, OPTIONS)
+    with pytest.raises(TypeError, match=r"^options: expected a ConvertOptions, got dict$"):
+        writer("bvh")(motion, tmp_path / "m.bvh", {"batch": 3})
+    with pytest.raises(TypeError, match=r"^motion: expected a unibody.motion.Motion, got str$"):
+        writer("bvh")("walk.npz", tmp_path / "m.bvh", OPTIONS)
+    with pytest.raises(ValueError, match=r"^path: expected a \.bvh file, got '.*m\.glb'$"):
+        writer("bvh")(motion, tmp_path / "m.glb", OPTIONS)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.motion.npz"]
+
+
 @pytest.mark.parametrize(
     "writer, name, change, match",
     [
@@ -290,8 +326,6 @@ def _bad_motion(motion: Motion, **fields) -> Motion:
         (write_meshes, "m.npy", {}, r"^path: expected a \.npz file"),
         (write_glb, "m.glb", {"motion": "walk.npz"}, r"^motion: expected a unibody.motion.Motion, got str$"),
         (write_glb, "m.glb", {"options": {"batch": 4}}, r"^options: expected a ConvertOptions, got dict$"),
-        (write_glb, "m.glb", {"options": ConvertOptions(batch=0)}, r"^options.batch: expected a positive integer"),
-        (write_meshes, "m.npz", {"options": ConvertOptions(dtype="half")}, r"^options.dtype: expected one of"),
         (write_glb, "m.glb", {"pose": np.zeros((3, 76, 3), np.float32)}, r"^motion.pose: expected \(T, 77, 3\)"),
         (write_glb, "m.glb", {"pose": np.zeros((0, 77, 3), np.float32)}, r"^motion.pose: .*T >= 1"),
         (

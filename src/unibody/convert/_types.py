@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .._checks import check_count
 from ..motion import Motion
 
 __all__ = ["ConvertOptions", "Converted"]
@@ -31,6 +32,24 @@ class ConvertOptions:
     mapping: Path | None = None
     batch: int = 256
     dtype: str = "float32"
+
+    def __post_init__(self) -> None:
+        # Checked when made, so every reader and writer meets them valid (a batch of 0, a preset
+        # "best" or a dtype "half" ran, or failed far from here, before).
+        from ..fitting.inversion import PRESETS
+        from .skeletal import UNITS
+
+        if self.preset not in PRESETS:
+            raise ValueError(f"preset: expected one of {', '.join(PRESETS)}, got {self.preset!r}")
+        check_count(self.batch, "batch", 1)
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError(f"dtype: expected float32 or float64, got {self.dtype!r}")
+        if self.units is not None and self.units not in UNITS:
+            raise ValueError(f"units: expected one of {', '.join(UNITS)} or None (detected), got {self.units!r}")
+        for name in ("models", "template", "mapping"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, str | Path):
+                raise TypeError(f"{name}: expected a path or None, got {type(value).__name__}")
 
 
 @dataclass(frozen=True, slots=True)

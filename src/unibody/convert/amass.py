@@ -288,14 +288,7 @@ def _inverter(preset: str, dtype: torch.dtype) -> tuple[BodyLayer, PoseInverter]
 
 def inverter(options: ConvertOptions) -> tuple[BodyLayer, PoseInverter, torch.dtype]:
     """The canonical layer and the inverter of ``options`` (built once per process), and the dtype."""
-    dtypes = {"float32": torch.float32, "float64": torch.float64}
-    if options.dtype not in dtypes:
-        raise ValueError(f"dtype: expected float32 or float64, got {options.dtype!r}")
-    if options.preset not in PRESETS:
-        raise ValueError(f"preset: expected one of {', '.join(PRESETS)}, got {options.preset!r}")
-    if isinstance(options.batch, bool) or not isinstance(options.batch, int) or options.batch < 1:
-        raise ValueError(f"batch: expected a positive int, got {options.batch!r}")
-    dtype = dtypes[options.dtype]
+    dtype = {"float32": torch.float32, "float64": torch.float64}[options.dtype]  # ConvertOptions checked it
     return (*_inverter(options.preset, dtype), dtype)
 
 

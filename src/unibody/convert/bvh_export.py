@@ -93,6 +93,8 @@ def write_bvh(motion: Motion, path: Path, options: ConvertOptions) -> None:
         ValueError: one line: the motion's pose, transl or fps is malformed or not finite, or
             its identity does not fit its backend.
     """
+    if Path(path).suffix.lower() != ".bvh":
+        raise ValueError(f"path: expected a .bvh file, got {str(path)!r}")
     pose, transl, fps = _check(motion)
     dtype = torch.float64 if options.dtype == "float64" else torch.float32
     layer, prepared = body_for(motion, dtype)

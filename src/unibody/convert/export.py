@@ -65,11 +65,7 @@ def _check(motion: Motion, path: object, options: ConvertOptions, suffixes: tupl
                 f"motion.{name}: expected finite values, got NaN/inf at frame(s) {np.flatnonzero(bad)[:5].tolist()}"
             )
     check_motion(motion)  # float32's range, the root's distance, the identity, the rate
-    if isinstance(options.batch, bool) or not isinstance(options.batch, int) or options.batch < 1:
-        raise ValueError(f"options.batch: expected a positive integer, got {options.batch!r}")
-    if options.dtype not in _DTYPES:
-        raise ValueError(f"options.dtype: expected one of {', '.join(_DTYPES)}, got {options.dtype!r}")
-    return path
+    return path  # options: ConvertOptions checked its batch and dtype when made
 
 
 def _posed(

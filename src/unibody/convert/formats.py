@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..motion import MOTION_FORMAT, check_motion, load_motion, save_motion
+from ..motion import MOTION_FORMAT, Motion, check_motion, load_motion, save_motion
 from ._types import Converted, ConvertOptions
 
 __all__ = [
@@ -108,6 +108,7 @@ def reader(fmt: str) -> Callable[[Path, ConvertOptions], Converted]:
 
     @functools.wraps(read)
     def checked(path: Path, options: ConvertOptions) -> Converted:
+        _check_call(path, options)
         converted = read(path, options)
         check_motion(converted.motion, f"{path}: ")  # one rule for what any reader gives
         if len(converted.motion.pose) == 0:
@@ -126,7 +127,24 @@ def writer(fmt: str) -> Callable:
     spec = FORMATS.get(fmt)
     if spec is None or spec.write is None:
         raise ValueError(f"format: expected one of {', '.join(WRITERS)} to write, got {fmt!r}")
-    return _load(spec.write, fmt)
+    write = _load(spec.write, fmt)
+
+    @functools.wraps(write)
+    def checked(motion, path: Path, options: ConvertOptions) -> None:  # noqa: ANN001 (a Motion)
+        if not isinstance(motion, Motion):
+            raise TypeError(f"motion: expected a unibody.motion.Motion, got {type(motion).__name__}")
+        _check_call(path, options)
+        write(motion, path, options)
+
+    return checked
+
+
+def _check_call(path: object, options: object) -> None:
+    """TypeError naming ``path`` or ``options`` when a reader or writer is called with the wrong types."""
+    if not isinstance(path, str | Path):
+        raise TypeError(f"path: expected a file path, got {type(path).__name__}")
+    if not isinstance(options, ConvertOptions):
+        raise TypeError(f"options: expected a ConvertOptions, got {type(options).__name__}")
 
 
 def read_motion(path: Path, options: ConvertOptions) -> Converted:
