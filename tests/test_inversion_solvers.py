@@ -95,3 +95,15 @@ def test_block_sums_match_the_per_vertex_sums(random_protocol):
     assert any(lv.block == 0 for lv in uncapped._levels["full"])
     with torch.no_grad():
         assert float(uncapped.invert(target, prepared).per_vertex_error.mean()) * 1e3 < 3.0
+
+
+def test_gather_reads_either_layout():
+    """_gather takes rows of a vertex-major mesh and columns of a batch-major one alike."""
+    from unibody.fitting.inversion import _gather
+
+    mesh = torch.randn(5, 40, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    index = torch.tensor([7, 0, 39, 7])
+    vertex_major = mesh.transpose(0, 1).contiguous().transpose(0, 1)
+    assert vertex_major.stride(0) < vertex_major.stride(1)
+    for m in (mesh, vertex_major):
+        assert torch.equal(_gather(m, index), mesh[:, index])
