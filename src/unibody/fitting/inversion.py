@@ -328,7 +328,7 @@ class PoseInverter(nn.Module):
         # checks 65 -> ~15 ms at batch 32, one thread), so copy once, into vertex-major order
         # (V, B, 3), seen as (B, V, 3): the layout of BodyLayer's output, of the skeleton fit's
         # operand (it then makes no copy of its own) and of the posed mesh the residuals compare.
-        # Skeleton transfer 1.2-1.6x faster than with a batch-major copy (inversion_speed.py).
+        # Skeleton transfer 1.2-1.4x faster than with a batch-major copy (inversion_speed.py).
         b = vertices.shape[0]
         rows = vertices.transpose(0, 1).contiguous()  # (V, B, 3)
         vertices = rows.transpose(0, 1)
