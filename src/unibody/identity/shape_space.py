@@ -309,13 +309,12 @@ def build_shape_space(
             made with other settings.
     """
     _check_sources(sources)
-    for label, x, lo in (("identities", identities, 1), ("chunk", chunk, 1), ("components", components, 1)):
+    sizes = (("identities", identities, 1), ("chunk", chunk, 1), ("components", components, 1), ("seed", seed, 0))
+    for label, x, lo in sizes:  # a negative seed failed in numpy as "expected non-negative integer"
         if isinstance(x, bool) or not isinstance(x, int) or x < lo:
             raise ValueError(f"{label}: expected an int >= {lo}, got {x!r}")
     if not components <= rank:
         raise ValueError(f"components: {components} exceeds rank {rank}")
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:  # numpy said "expected non-negative integer"
-        raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
     counts = _counts(sources, identities)
     samples = sum(counts) * (2 if mirror else 1)
     if samples <= components:

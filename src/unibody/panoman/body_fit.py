@@ -160,7 +160,6 @@ def _regress(regressor: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
     return torch.sparse.mm(regressor, flat).reshape(-1, b, 3).permute(1, 0, 2)
 
 
-@torch.enable_grad()  # it descends a gradient whatever its caller (commands run under no_grad)
 def _check_args(layer, vertex_ids, vertex_targets, regressor, joint_targets) -> None:  # noqa: ANN001
     """TypeError / ValueError naming the argument (:func:`fit_body`'s)."""
     if not isinstance(layer, BodyLayer) or layer.identity is None:
@@ -179,6 +178,7 @@ def _check_args(layer, vertex_ids, vertex_targets, regressor, joint_targets) -> 
         check_finite(x, name)
 
 
+@torch.enable_grad()  # it descends a gradient whatever its caller (commands run under no_grad)
 def fit_body(
     layer: BodyLayer,
     vertex_ids: torch.Tensor,
